@@ -1,0 +1,35 @@
+# `make demo` and `make test` set everything up (idempotently) and run. See README.md.
+PY      := .venv/bin/python
+REQHASH := $(shell cat requirements.txt pyproject.toml scripts/install-system.sh | sha1sum | cut -c1-12)
+STAMP   := .venv/.installed-$(REQHASH)
+export PYOPENGL_PLATFORM ?= egl
+export QT_QPA_PLATFORM ?= offscreen
+
+.PHONY: setup demo test test-slow test-all bench clean
+setup: $(STAMP)
+
+$(STAMP): requirements.txt pyproject.toml scripts/install-system.sh
+	bash scripts/install-system.sh
+	test -x $(PY) || python3 -m venv .venv
+	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt
+	$(PY) -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+	rm -f .venv/.installed-*
+	touch $@
+
+demo: setup
+	.venv/bin/sonicverse demo --out out/demo
+
+test: setup
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow: setup
+	$(PY) -m pytest -q -m slow
+
+test-all: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	.venv/bin/sonicverse bench rays
+
+clean:
+	rm -rf out .pytest_cache

@@ -1,0 +1,1 @@
+"""Agents: scripted baselines and learned policies (torch)."""

@@ -1,0 +1,1 @@
+"""The visual scene built from the core scene (pyrender)."""

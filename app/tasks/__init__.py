@@ -1,0 +1,1 @@
+"""Human-study tasks and their launcher."""

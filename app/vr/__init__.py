@@ -1,0 +1,1 @@
+"""VR frame loop and its backends (OpenVR, desktop, headless)."""

@@ -1,0 +1,62 @@
+"""The one errors module of Sonicverse.
+
+Every mistake a user can make (an unknown scene spec, a missing file, a broken mesh, an unknown material, a bad
+pose, a wrong sample rate, a device that vanishes) raises a subclass of :class:`SonicverseError`. The CLI turns any
+of them into one line on stderr and exit code 2; a running session catches them and carries on.
+"""
+from __future__ import annotations
+
+
+class SonicverseError(Exception):
+    """Base class: a problem the user can fix. ``str(err)`` is one line that says what and how."""
+
+    exit_code = 2
+
+
+class SceneSpecError(SonicverseError):
+    """An unknown or malformed scene spec string."""
+
+
+class SceneFileError(SonicverseError):
+    """A scene file or folder that is missing or cannot be read."""
+
+
+class MeshError(SonicverseError):
+    """Geometry that cannot be used: NaN vertices, no faces, zero volume."""
+
+
+class MaterialError(SonicverseError):
+    """An unknown acoustic material or a broken material mapping."""
+
+
+class AssetError(SonicverseError):
+    """A missing or corrupt asset (sound, HRTF, speech); the message says how to get it."""
+
+
+class ConfigError(SonicverseError):
+    """A setting out of its valid range (sample rate, block size, probe count...)."""
+
+
+class PoseError(SonicverseError):
+    """A pose or position that is not finite or lies outside what the scene allows."""
+
+
+class DeviceError(SonicverseError):
+    """An audio or VR device that does not exist, does not support a setting, or disappeared."""
+
+
+class DependencyError(SonicverseError):
+    """An optional dependency that is not installed; the message names the install command."""
+
+
+def require(module: str, purpose: str, install: str | None = None):
+    """Import an optional module lazily, or raise :class:`DependencyError` naming the pip command."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        pkg = install or module.split(".")[0]
+        raise DependencyError(
+            f"{purpose} needs the Python package '{pkg}' ({exc}); install it with: .venv/bin/pip install {pkg}"
+        ) from exc

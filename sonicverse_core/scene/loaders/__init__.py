@@ -1,0 +1,1 @@
+"""Scene loaders: meshes (GLB/glTF, OBJ, PLY), Matterport3D house folders, iGibson scene folders."""

@@ -1,0 +1,37 @@
+"""Scene summaries for `sonicverse scene info`."""
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+
+from sonicverse_core.scene.model import Door, Scene
+
+
+def scene_info(scene: Scene, nav_area: float | None = None) -> dict:
+    """Rooms, objects per category, materials with their surface areas (m^2), floor area, bounds, triangles."""
+    areas: Counter = Counter()
+    for p in scene.static:
+        areas[p.material] += float(p.mesh.area)
+    for o in scene.objects:
+        areas[o.material] += float(o.mesh.area)
+    floor = sum(r.area for r in scene.rooms) if scene.rooms else 0.0
+    info = {
+        "name": scene.name,
+        "spec": scene.spec,
+        "mapping": scene.mapping_name,
+        "bounds": np.round(scene.bounds, 3).tolist(),
+        "floor_area_m2": round(floor, 2),
+        "triangles": scene.triangle_count,
+        "static_triangles": len(scene.static_mesh()),
+        "rooms": [{"name": r.name, "type": r.type, "area_m2": round(r.area, 2),
+                   "height_m": round(r.z_ceiling - r.z_floor, 3)} for r in scene.rooms],
+        "objects_per_category": dict(sorted(Counter(o.category for o in scene.objects).items())),
+        "doors": [{"name": d.name, "rooms": list(d.rooms), "open_fraction": d.open_fraction}
+                  for d in scene.objects if isinstance(d, Door)],
+        "materials_m2": {k: round(v, 2) for k, v in sorted(areas.items())},
+        "metadata": {k: v for k, v in scene.metadata.items() if isinstance(v, (int, float, str, list))},
+    }
+    if nav_area is not None:
+        info["navigable_area_m2"] = round(nav_area, 2)
+    return info
