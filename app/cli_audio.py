@@ -1,7 +1,122 @@
-"""CLI commands of the acoustic engine (render, bake, bench audio, bench accuracy)."""
+"""CLI commands of the acoustic engine: render and bake."""
 from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from sonicverse_core.errors import ConfigError
+
+
+def _xyz(text: str, n=(3,)) -> list[float]:
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"expected comma-separated numbers, got '{text}'") from None
+    if len(v) not in n or not np.all(np.isfinite(v)):
+        raise ConfigError(f"expected {' or '.join(map(str, n))} finite numbers, got '{text}'")
+    return v
+
+
+def load_sound(name: str, sample_rate: int) -> tuple[np.ndarray, int]:
+    """A sound bank name ('sofa', 'sofa/2') or a WAV/FLAC file."""
+    from pathlib import Path
+
+    from assets_manifest import soundbank
+    from sonicverse_core.errors import AssetError
+
+    if "/" in name and not Path(name).suffix or name.split("/")[0] in soundbank.CATEGORIES and not Path(name).exists():
+        return soundbank.by_name(name), soundbank.SAMPLE_RATE
+    p = Path(name)
+    if not p.is_file():
+        raise AssetError(f"sound not found: '{name}' is neither a file nor a sound bank name "
+                         f"({', '.join(soundbank.CATEGORIES)})")
+    import soundfile as sf
+
+    try:
+        x, sr = sf.read(str(p), dtype="float32", always_2d=True)
+    except Exception as exc:
+        raise AssetError(f"cannot read sound file {p}: {exc}") from None
+    return x.mean(axis=1), sr
+
+
+def cmd_render(a) -> int:
+    import soundfile as sf
+
+    from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions
+    from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+    from sonicverse_core.scene.spec import load_scene
+
+    scene = load_scene(a.spec)
+    src = _xyz(a.source)
+    lis = _xyz(a.listener, (3, 4))
+    if a.seconds <= 0 or a.seconds > 3600:
+        raise ConfigError("--seconds must be within (0, 3600]")
+    cfg = RenderConfig(sample_rate=a.sample_rate, block=a.block, output=a.output,
+                       occlusion=not a.no_occlusion, late_reverb=not a.no_reverb)
+    sig, sr = load_sound(a.sound, cfg.sample_rate)
+    probes = None
+    if cfg.late_reverb:
+        positions = default_probe_positions(scene)
+        probes = bake(scene, positions, BakeConfig(rays=a.rays), progress=not a.json)
+        if not any(p.enclosed > 0.5 for p in probes):
+            probes = None  # an open scene: no reverb to render
+    r = AcousticRenderer(scene, cfg, probes=probes)
+    r.add_source(sig, src, loop=True, sample_rate=sr)
+    r.add_listener(lis[:3], lis[3] if len(lis) == 4 else 0.0)
+    y = r.render(a.seconds)[0]
+    y = y[:, : int(a.seconds * cfg.sample_rate)]
+    sf.write(a.out, y.T, cfg.sample_rate, subtype="FLOAT")
+    res = {"out": a.out, "sample_rate": cfg.sample_rate, "seconds": a.seconds,
+           "peak": [float(np.max(np.abs(c))) for c in y], "rms": [float(np.sqrt(np.mean(c.astype(float) ** 2)))
+                                                                 for c in y],
+           "subsystems": r.subsystems}
+    print(json.dumps(res) if a.json else f"wrote {a.out} ({', '.join(r.subsystems)})")
+    return 0
+
+
+def cmd_bake(a) -> int:
+    from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions
+    from sonicverse_core.scene.spec import load_scene
+
+    scene = load_scene(a.spec)
+    if a.at:
+        positions = np.array([_xyz(p) for p in a.at])
+    else:
+        positions = default_probe_positions(scene, a.probes, rng=np.random.default_rng(a.seed))
+    probes = bake(scene, positions, BakeConfig(rays=a.rays, seed=a.seed), progress=not a.json)
+    if a.json:
+        print(json.dumps({"scene": scene.spec, "probes": [p.to_json() for p in probes]}))
+    else:
+        for p in probes:
+            print(f"probe at {np.round(p.position, 2).tolist()}: RT60 (s) {np.round(p.rt60, 2).tolist()}")
+    return 0
 
 
 def add_audio_commands(sub, bench_sub) -> None:
-    """Registered by app.cli; filled in as the acoustic engine lands."""
-    return None
+    r = sub.add_parser("render", help="render binaural audio of one source to a file",
+                       description="Render a sound at a source position as heard at a listener (binaural).")
+    r.add_argument("spec", help="scene spec")
+    r.add_argument("--sound", required=True, help="sound bank name (e.g. sofa, sofa/3) or a WAV/FLAC file")
+    r.add_argument("--source", required=True, help="X,Y,Z of the source (m)")
+    r.add_argument("--listener", required=True, help="X,Y,Z[,YAW] of the listener (m, degrees)")
+    r.add_argument("--seconds", type=float, default=3.0)
+    r.add_argument("--out", required=True, help="output WAV file")
+    r.add_argument("--sample-rate", type=int, default=48000)
+    r.add_argument("--block", type=int, default=256)
+    r.add_argument("--output", default="binaural", choices=["binaural", "stereo", "mono"])
+    r.add_argument("--rays", type=int, default=4000, help="rays per reverb probe")
+    r.add_argument("--no-occlusion", action="store_true")
+    r.add_argument("--no-reverb", action="store_true")
+    r.add_argument("--json", action="store_true", help="print one JSON object")
+    r.set_defaults(func=cmd_render)
+    b = sub.add_parser("bake", help="bake reverb probes (ray tracing)",
+                       description="Bake reverb probes over the scene's static structure; cached on disk.")
+    b.add_argument("spec", help="scene spec")
+    b.add_argument("--probes", type=int, default=None, help="number of probes spread over the floor "
+                   "(default: one per room)")
+    b.add_argument("--rays", type=int, default=4000)
+    b.add_argument("--at", action="append", help="X,Y,Z of a probe (repeatable)")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--json", action="store_true", help="print one JSON object")
+    b.set_defaults(func=cmd_bake)

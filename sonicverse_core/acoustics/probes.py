@@ -1,0 +1,279 @@
+"""Reverb probes baked by ray tracing over a scene's static structure.
+
+From each probe, ``rays`` rays leave uniformly and bounce (specular, or Lambertian with the material's scattering
+probability) with per-band energy losses (absorption of every surface hit, air absorption along the path). The
+ensemble's energy in flight gives the room's energy decay per band; Schroeder backward integration of that curve,
+fitted between -5 and -35 dB (T30; -5..-25 dB when the range is short), gives RT60, and 0..-10 dB gives the early
+decay time. A proxy box (distances to the nearest surfaces along +-x, +-y, +-z and their materials) serves the early
+reflections. Bakes are cached on disk keyed by the static structure's content hash, the probe positions and the
+settings.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+
+
+import numpy as np
+
+from sonicverse_core.errors import ConfigError
+from sonicverse_core.scene.materials import BANDS, MATERIAL_NAMES, material_arrays
+
+SPEED_OF_SOUND = 343.0
+#: air absorption m (1/m, energy) per band, Resonance Audio's values
+AIR_ABSORPTION = np.array([0.0006, 0.0006, 0.0007, 0.0008, 0.0010, 0.0015, 0.0026, 0.0060, 0.0207])
+RT60_MAX = 60.0
+
+
+@dataclass(frozen=True)
+class BakeConfig:
+    """rays per probe; max_bounces; max_time (s) of tracing; hist_dt (s) of the decay histogram; seed."""
+
+    rays: int = 4000
+    max_bounces: int = 400
+    max_time: float = 4.0
+    hist_dt: float = 0.002
+    seed: int = 0
+
+    def __post_init__(self):
+        if not (16 <= self.rays <= 10_000_000):
+            raise ConfigError(f"rays per probe must be within 16..1e7, got {self.rays}")
+        if not (1 <= self.max_bounces <= 100_000) or not (0.05 <= self.max_time <= 60):
+            raise ConfigError("max_bounces must be 1..1e5 and max_time 0.05..60 s")
+
+
+@dataclass
+class Probe:
+    """position (3,); rt60, edt (9,) seconds; box_lo, box_hi (3,) proxy box; box_materials: 6 names
+    (-x, +x, -y, +y, -z, +z); volume (m^3) and mean absorption (9,) of the proxy box."""
+
+    position: np.ndarray
+    rt60: np.ndarray
+    edt: np.ndarray
+    box_lo: np.ndarray
+    box_hi: np.ndarray
+    box_materials: tuple
+    enclosed: float  # fraction of rays that hit something (1: closed room)
+
+    @property
+    def volume(self) -> float:
+        return float(np.prod(self.box_hi - self.box_lo))
+
+    def to_json(self) -> dict:
+        return {"position": np.round(self.position, 4).tolist(), "rt60": np.round(self.rt60, 4).tolist(),
+                "edt": np.round(self.edt, 4).tolist(), "box_lo": np.round(self.box_lo, 4).tolist(),
+                "box_hi": np.round(self.box_hi, 4).tolist(), "box_materials": list(self.box_materials),
+                "enclosed": round(self.enclosed, 4)}
+
+
+def _uniform_dirs(rng, n):
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _lambert(rng, normals):
+    """Cosine-weighted directions around unit normals (n, 3)."""
+    n = len(normals)
+    u1, u2 = rng.random(n), rng.random(n)
+    r, phi = np.sqrt(u1), 2 * np.pi * u2
+    local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - u1)], 1)
+    a = np.where(np.abs(normals[:, :1]) > 0.9, np.array([[0.0, 1, 0]]), np.array([[1.0, 0, 0]]))
+    t = np.cross(normals, a)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(normals, t)
+    return local[:, :1] * t + local[:, 1:2] * b + local[:, 2:] * normals
+
+
+def decay_times(energy: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """RT60 and EDT (s) per band from energy-in-flight curves (bands, T) by Schroeder integration."""
+    rt, edt = np.full(len(energy), RT60_MAX), np.full(len(energy), RT60_MAX)
+    t = (np.arange(energy.shape[1]) + 0.5) * dt
+    for b, e in enumerate(energy):
+        sch = np.cumsum(e[::-1])[::-1]
+        if sch[0] <= 0:
+            rt[b] = edt[b] = 0.0
+            continue
+        db = 10 * np.log10(np.maximum(sch / sch[0], 1e-30))
+
+        def fit(lo, hi):
+            m = (db <= lo) & (db >= hi)
+            if np.count_nonzero(m) < 3:
+                return None
+            slope = np.polyfit(t[m], db[m], 1)[0]
+            return RT60_MAX if slope >= -60 / RT60_MAX else -60.0 / slope
+
+        r = fit(-5, -35) if db.min() < -36 else fit(-5, -25) if db.min() < -26 else fit(0, max(db.min() + 1, -25))
+        if r is None:  # decay faster than one histogram bin
+            r = dt
+        rt[b] = min(r, RT60_MAX)
+        e10 = fit(0.0, -10.0)
+        edt[b] = min(e10 if e10 is not None else rt[b], RT60_MAX)
+    return rt, edt
+
+
+def trace_decay(caster, position: np.ndarray, config: BakeConfig) -> tuple[np.ndarray, float]:
+    """Ensemble energy in flight (9, T) on a grid of ``hist_dt`` and the fraction of rays that hit a surface."""
+    rng = np.random.default_rng(config.seed)
+    alpha, scat, _ = material_arrays()
+    nb = int(np.ceil(config.max_time / config.hist_dt)) + 1
+    acc = np.zeros((len(BANDS), nb + 1))
+    n = config.rays
+    o = np.tile(position, (n, 1)).astype(np.float64)
+    d = _uniform_dirs(rng, n)
+    e = np.full((n, len(BANDS)), 1.0 / n)
+    t = np.zeros(n)
+    alive = np.arange(n)
+    enclosed = None
+    for _ in range(config.max_bounces):
+        if len(alive) == 0:
+            break
+        h = caster.first_hit(o, d, include_dynamic=False)
+        hit = h.hit
+        if enclosed is None:
+            enclosed = float(np.mean(hit))
+        seg = np.where(hit, h.distance, (config.max_time - t) * SPEED_OF_SOUND)
+        t1 = t + seg / SPEED_OF_SOUND
+        # energy in flight on [t, t1): +e at the start bin, -e at the end bin (air loss applied per segment mid)
+        e_mid = e * np.exp(-AIR_ABSORPTION[None] * seg[:, None] * 0.5)
+        i0 = np.minimum((t / config.hist_dt).astype(int), nb)
+        i1 = np.minimum((t1 / config.hist_dt).astype(int), nb)
+        nbands = len(BANDS)
+        off = (np.arange(nbands) * (nb + 1))[None, :]
+        idx = np.concatenate([(i0[:, None] + off).ravel(), (i1[:, None] + off).ravel()])
+        w = np.concatenate([e_mid.ravel(), -e_mid.ravel()])
+        acc += np.bincount(idx, w, minlength=nbands * (nb + 1)).reshape(nbands, nb + 1)
+        e = e * np.exp(-AIR_ABSORPTION[None] * seg[:, None])
+        keep = hit & (t1 < config.max_time)
+        mat = h.material[keep]
+        e = e[keep] * (1.0 - alpha[mat])
+        nrm = h.normal[keep]
+        dk = d[keep]
+        nrm = np.where((np.einsum("ij,ij->i", nrm, dk) > 0)[:, None], -nrm, nrm)
+        spec = dk - 2 * np.einsum("ij,ij->i", dk, nrm)[:, None] * nrm
+        diffuse = rng.random(len(dk)) < scat[mat]
+        newd = spec
+        if np.any(diffuse):
+            newd[diffuse] = _lambert(rng, nrm[diffuse])
+        o = o[keep] + dk * h.distance[keep, None] + nrm * 1e-4
+        d, t = newd, t1[keep]
+        alive_e = e.max(1) > 1e-7 / n
+        o, d, e, t = o[alive_e], d[alive_e], e[alive_e], t[alive_e]
+        alive = np.arange(len(o))
+    energy = np.cumsum(acc, axis=1)[:, :nb]
+    return np.maximum(energy, 0.0), enclosed or 0.0
+
+
+def proxy_box(caster, position: np.ndarray, far: float = 50.0) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Nearest surfaces along the six axes -> box bounds and materials (Transparent where open)."""
+    dirs = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float)
+    h = caster.first_hit(np.tile(position, (6, 1)), dirs, far, include_dynamic=False)
+    dist = np.where(h.hit, h.distance, far)
+    mats = tuple(MATERIAL_NAMES[m] if m >= 0 else "Transparent" for m in h.material)
+    lo = position - np.array([dist[0], dist[2], dist[4]])
+    hi = position + np.array([dist[1], dist[3], dist[5]])
+    return lo, hi, mats
+
+
+def bake_probe(caster, position, config: BakeConfig = BakeConfig()) -> Probe:
+    position = np.asarray(position, np.float64)
+    if position.shape != (3,) or not np.all(np.isfinite(position)):
+        raise ConfigError("a probe position must be 3 finite numbers")
+    energy, enclosed = trace_decay(caster, position, config)
+    rt, edt = decay_times(energy, config.hist_dt)
+    lo, hi, mats = proxy_box(caster, position)
+    return Probe(position, rt, edt, lo, hi, mats, enclosed)
+
+
+def _cache_key(scene, positions: np.ndarray, config: BakeConfig) -> str:
+    h = hashlib.sha256()
+    h.update(scene.static_hash().encode())
+    h.update(np.round(np.asarray(positions, np.float64), 4).tobytes())
+    h.update(json.dumps(asdict(config), sort_keys=True).encode())
+    h.update(b"probes-v1")
+    return h.hexdigest()[:24]
+
+
+def bake(scene, positions, config: BakeConfig = BakeConfig(), caster=None, cache: bool = True,
+         progress: bool = False) -> list[Probe]:
+    """Bake probes at ``positions`` (k, 3), through the on-disk cache."""
+    from sonicverse_core.geometry.raycast import SceneRayCaster
+
+    positions = np.atleast_2d(np.asarray(positions, np.float64))
+    path = None
+    if cache:
+        from assets_manifest import cache_dir
+
+        path = cache_dir() / "bakes" / f"{_cache_key(scene, positions, config)}.json"
+        if path.is_file():
+            try:
+                return [_probe_from_json(p) for p in json.loads(path.read_text())]
+            except (ValueError, KeyError):
+                path.unlink(missing_ok=True)
+    caster = caster or SceneRayCaster(scene)
+    probes = []
+    for i, p in enumerate(positions):
+        probes.append(bake_probe(caster, p, config))
+        if progress:
+            import sys
+
+            done = int(30 * (i + 1) / len(positions))
+            print(f"\rbaking probes [{'#' * done}{'.' * (30 - done)}] {i + 1}/{len(positions)}", end="",
+                  file=sys.stderr, flush=True)
+    if progress:
+        import sys
+
+        print(file=sys.stderr)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps([p.to_json() for p in probes]))
+        tmp.replace(path)
+    return probes
+
+
+def _probe_from_json(d: dict) -> Probe:
+    return Probe(np.array(d["position"]), np.array(d["rt60"]), np.array(d["edt"]), np.array(d["box_lo"]),
+                 np.array(d["box_hi"]), tuple(d["box_materials"]), d["enclosed"])
+
+
+def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rng=None) -> np.ndarray:
+    """One probe per room at its navigable point nearest the centre (or n spread over the floor)."""
+    from sonicverse_core.geometry.navgrid import NavGrid
+
+    grid = NavGrid(scene)
+    z = scene.floor_z + height
+    if n is None:
+        pts = []
+        for r in scene.rooms:
+            c = r.footprint.mean(0)
+            rc = grid.cell_of(c)[0]
+            rows, cols = np.nonzero(grid.labels == grid.main_label)
+            if len(rows) == 0:
+                pts.append(c)
+                continue
+            centers = grid.center_of(np.stack([rows, cols], 1))
+            inside = r.contains(centers)
+            cand = centers[inside] if np.any(inside) else centers
+            pts.append(cand[np.argmin(np.linalg.norm(cand - c, axis=1))] if len(cand) else c)
+            _ = rc
+        return np.array([[p[0], p[1], z] for p in pts])
+    rng = rng or np.random.default_rng(0)
+    xy = grid.sample(rng, n)
+    return np.c_[xy, np.full(n, z)]
+
+
+def eyring_rt60(dims, alpha_surfaces: dict, air: bool = True) -> np.ndarray:
+    """Eyring RT60 (9,) of a shoebox: 0.161 V / (-S ln(1 - mean alpha) + 4 m V)."""
+    from sonicverse_core.scene.materials import get_material
+
+    L, W, H = dims
+    areas = {"floor": L * W, "ceiling": L * W, "x0": W * H, "x1": W * H, "y0": L * H, "y1": L * H}
+    S = sum(areas.values())
+    V = L * W * H
+    mean_alpha = sum(areas[k] * np.array(get_material(alpha_surfaces[k]).absorption) for k in areas) / S
+    m = AIR_ABSORPTION if air else 0.0
+    with np.errstate(divide="ignore"):
+        return 0.161 * V / (-S * np.log(np.maximum(1 - mean_alpha, 1e-12)) + 4 * m * V)
+
+
