@@ -244,19 +244,14 @@ def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rn
     grid = NavGrid(scene)
     z = scene.floor_z + height
     if n is None:
+        rows, cols = np.nonzero(grid.labels == grid.main_label)
+        centers = grid.center_of(np.stack([rows, cols], 1)) if len(rows) else np.zeros((0, 2))
         pts = []
         for r in scene.rooms:
             c = r.footprint.mean(0)
-            rc = grid.cell_of(c)[0]
-            rows, cols = np.nonzero(grid.labels == grid.main_label)
-            if len(rows) == 0:
-                pts.append(c)
-                continue
-            centers = grid.center_of(np.stack([rows, cols], 1))
-            inside = r.contains(centers)
+            inside = r.contains(centers) if len(centers) else np.zeros(0, bool)
             cand = centers[inside] if np.any(inside) else centers
             pts.append(cand[np.argmin(np.linalg.norm(cand - c, axis=1))] if len(cand) else c)
-            _ = rc
         return np.array([[p[0], p[1], z] for p in pts])
     rng = rng or np.random.default_rng(0)
     xy = grid.sample(rng, n)
