@@ -43,7 +43,7 @@ class HrtfInterpolator:
         self.onsets = start / sample_rate  # seconds (the PRE samples are part of the filter)
         self.taps = taps
         hull = ConvexHull(self.directions)
-        self._tri = hull.simplices
+        self._tri = hull.simplices.astype(np.int64)
         # inverse of each triangle's vertex matrix for barycentric weights
         self._inv = np.linalg.inv(self.directions[self._tri].transpose(0, 2, 1))
         self._centroid = self.directions[self._tri].mean(1)
@@ -51,20 +51,93 @@ class HrtfInterpolator:
 
     def weights(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For unit vectors (m, 3): vertex indices (m, 3) and barycentric weights (m, 3) summing to 1."""
-        d = np.atleast_2d(directions)
+        return self.fast_weights(directions)
+
+    def _exact_triangles(self, d: np.ndarray) -> np.ndarray:
+        out = np.empty(len(d), np.int64)
+        for i in range(0, len(d), 4096):
+            chunk = d[i:i + 4096]
+            cand = np.argpartition(-(chunk @ self._centroid.T), 8, axis=1)[:, :8]
+            w = np.einsum("mkij,mj->mki", self._inv[cand], chunk)
+            ok = np.all(w >= -1e-9, axis=2)
+            pick = np.where(ok.any(1), np.argmax(ok, axis=1), np.argmax(w.min(2), axis=1))
+            out[i:i + 4096] = cand[np.arange(len(chunk)), pick]
+            miss = np.flatnonzero(~ok.any(1))  # big triangles (the open bottom cap): search them all
+            if len(miss):
+                wa = np.einsum("tij,mj->mti", self._inv, chunk[miss]).min(2)
+                out[i + miss] = np.argmax(wa, axis=1)
+        return out
+
+    def _grid(self) -> tuple[np.ndarray, float]:
+        """A 2-degree azimuth/elevation table: per cell, the triangles holding its centre and its four corners
+        (na, ne, 5): candidates for the compiled lookup."""
+        if getattr(self, "_grid_tri", None) is None:
+            step = 2.0
+
+            def dirs(az_deg, el_deg):
+                A, E = np.meshgrid(np.radians(az_deg), np.radians(el_deg), indexing="ij")
+                return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1)
+
+            centres = dirs(np.arange(-180, 180, step) + step / 2, np.arange(-90, 90, step) + step / 2)
+            corners = dirs(np.arange(-180, 180 + step, step), np.arange(-90, 90 + step, step))
+            na, ne = centres.shape[:2]
+            c = self._exact_triangles(centres.reshape(-1, 3)).reshape(na, ne)
+            k = self._exact_triangles(corners.reshape(-1, 3)).reshape(na + 1, ne + 1)
+            self._grid_tri = np.stack([c, k[:-1, :-1], k[1:, :-1], k[:-1, 1:], k[1:, 1:]], axis=-1)
+            self._grid_step = step
+        return self._grid_tri, self._grid_step
+
+    def fast_weights(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`weights`, through the grid table and a compiled loop (directions near a cell's triangle edge
+        fall back to a search over the whole hull)."""
+        from sonicverse_core.acoustics.kernels import barycentric
+
+        d = np.ascontiguousarray(np.atleast_2d(directions), dtype=np.float64)
         if not np.all(np.isfinite(d)):
             raise ConfigError("HRTF directions must be finite")
-        nrm = np.linalg.norm(d, axis=1, keepdims=True)
-        d = np.where(nrm > 1e-12, d / np.maximum(nrm, 1e-12), np.array([1.0, 0, 0]))
-        # candidate triangles: the 8 whose centroids are nearest, pick the one with all weights >= 0
-        cand = np.argpartition(-(d @ self._centroid.T), 8, axis=1)[:, :8]
-        w = np.einsum("mkij,mj->mki", self._inv[cand], d)  # (m, 8, 3)
-        ok = np.all(w >= -1e-9, axis=2)
-        pick = np.where(ok.any(1), np.argmax(ok, axis=1), np.argmax(w.min(2), axis=1))
-        tri = self._tri[cand[np.arange(len(d)), pick]]
-        ww = np.clip(w[np.arange(len(d)), pick], 0, None)
-        ww /= np.maximum(ww.sum(1, keepdims=True), 1e-12)
-        return tri, ww
+        grid, step = self._grid()
+        return barycentric(d, grid, step, self._inv, self._tri)
+
+    def spectra(self, nfft: int) -> np.ndarray:
+        """Spectra of the aligned filters at FFT size ``nfft``: (n, 2, nfft // 2 + 1) complex64 (cached)."""
+        cache = self.__dict__.setdefault("_spectra", {})
+        if nfft not in cache:
+            cache[nfft] = np.fft.rfft(self.filters, nfft, axis=-1).astype(np.complex64)
+        return cache[nfft]
+
+    def lookup_spectra(self, directions: np.ndarray, nfft: int, method: str = "barycentric"):
+        """Interpolated filter spectra (m, 2, nf) complex64 and onset delays (m, 2) s for unit vectors (m, 3).
+        ``method``: barycentric (default) or nearest."""
+        H = self.spectra(nfft)
+        if method == "nearest":
+            i = np.argmax(np.atleast_2d(directions) @ self.directions.T, axis=1)
+            return H[i], self.onsets[i]
+        from sonicverse_core.acoustics.kernels import mix_spectra
+
+        tri, w = self.fast_weights(directions)
+        out = np.empty((len(tri), 2, H.shape[-1]), np.complex64)
+        mix_spectra(H, tri, w, np.ones((len(tri), H.shape[-1]), np.float32), np.zeros(len(tri)),
+                    np.zeros((2, H.shape[-1]), np.complex64), out)
+        return out, np.einsum("mk,mke->me", w, self.onsets[tri])
+
+    def ambisonic_filters(self, order: int, nfft: int, length: int = 0) -> tuple[np.ndarray, float]:
+        """Binaural decoding filters of real N3D spherical harmonics up to ``order``: (C, 2, nf) complex64 with
+        C = (order + 1)^2, fitted by least squares over the measured directions (onset delays restored relative to
+        the earliest one), truncated to ``length`` taps when given, and that common bulk delay in seconds."""
+        from sonicverse_core.acoustics.ambisonics import real_sh
+
+        bulk = float(self.onsets.min())
+        rel = self.onsets - bulk
+        f = np.fft.rfftfreq(nfft, 1 / self.sample_rate)
+        H = self.spectra(nfft) * np.exp(-2j * np.pi * f[None, None, :] * rel[..., None])
+        Y = real_sh(self.directions, order)  # (n, C)
+        Hsh = np.linalg.lstsq(Y, H.reshape(len(H), -1), rcond=None)[0].reshape(Y.shape[1], 2, -1)
+        if length:  # truncate the SH filters with a half-Hann fade over their last quarter
+            h = np.fft.irfft(Hsh, nfft, axis=-1)[..., :length]
+            fade = length // 4
+            h[..., length - fade:] *= 0.5 * (1 + np.cos(np.pi * (np.arange(fade) + 1) / fade))
+            Hsh = np.fft.rfft(h, nfft, axis=-1)
+        return Hsh.astype(np.complex64), bulk
 
     def lookup(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Interpolated aligned filters (m, 2, taps) and onset delays (m, 2) seconds for unit vectors (m, 3)."""

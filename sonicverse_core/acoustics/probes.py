@@ -5,7 +5,7 @@ probability) with per-band energy losses (absorption of every surface hit, air a
 ensemble's energy in flight gives the room's energy decay per band; Schroeder backward integration of that curve,
 fitted between -5 and -35 dB (T30; -5..-25 dB when the range is short), gives RT60, and 0..-10 dB gives the early
 decay time. A proxy box (distances to the nearest surfaces along +-x, +-y, +-z and their materials) serves the early
-reflections. Bakes are cached on disk keyed by the static structure's content hash, the probe positions and the
+reflections (median distances in a cone of rays per axis, robust to doors). Bakes are cached on disk keyed by the static structure's content hash, the probe positions and the
 settings.
 """
 from __future__ import annotations
@@ -30,7 +30,7 @@ RT60_MAX = 60.0
 class BakeConfig:
     """rays per probe; max_bounces; max_time (s) of tracing; hist_dt (s) of the decay histogram; seed."""
 
-    rays: int = 4000
+    rays: int = 2000
     max_bounces: int = 400
     max_time: float = 4.0
     hist_dt: float = 0.002
@@ -164,15 +164,40 @@ def trace_decay(caster, position: np.ndarray, config: BakeConfig) -> tuple[np.nd
     return np.maximum(energy, 0.0), enclosed or 0.0
 
 
-def proxy_box(caster, position: np.ndarray, far: float = 50.0) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Nearest surfaces along the six axes -> box bounds and materials (Transparent where open)."""
-    dirs = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float)
-    h = caster.first_hit(np.tile(position, (6, 1)), dirs, far, include_dynamic=False)
-    dist = np.where(h.hit, h.distance, far)
-    mats = tuple(MATERIAL_NAMES[m] if m >= 0 else "Transparent" for m in h.material)
+def proxy_box(caster, position: np.ndarray, far: float = 50.0, cone_deg: float = 20.0, per_axis: int = 37):
+    """The room as a box around ``position``: along each of +-x, +-y, +-z, rays in a cone of ``cone_deg`` give the
+    median distance to the nearest surface projected on the axis (so a door or window in the way does not push
+    the wall away) and the most common material hit (Transparent where most rays escape)."""
+    axes = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float)
+    # a fixed spiral of directions in the cone around +z, rotated onto each axis
+    k = np.arange(per_axis) + 0.5
+    cos_t = 1 - (1 - np.cos(np.radians(cone_deg))) * k / per_axis
+    phi = np.pi * (1 + 5 ** 0.5) * k
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    local = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], 1)
+    dirs, owner = [], []
+    for i, a in enumerate(axes):
+        ref = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
+        u = np.cross(a, ref)
+        u /= np.linalg.norm(u)
+        v = np.cross(a, u)
+        dirs.append(local[:, :1] * u + local[:, 1:2] * v + local[:, 2:] * a)
+        owner.append(np.full(per_axis, i))
+    dirs, owner = np.concatenate(dirs), np.concatenate(owner)
+    h = caster.first_hit(np.tile(position, (len(dirs), 1)), dirs, far, include_dynamic=False)
+    proj = np.where(h.hit, h.distance * np.einsum("ij,ij->i", dirs, axes[owner]), far)
+    dist, mats = np.empty(6), []
+    for i in range(6):
+        sel = owner == i
+        dist[i] = float(np.median(proj[sel]))
+        m = h.material[sel & h.hit]
+        if len(m) < per_axis / 2:
+            mats.append("Transparent")
+        else:
+            mats.append(MATERIAL_NAMES[int(np.bincount(m).argmax())])
     lo = position - np.array([dist[0], dist[2], dist[4]])
     hi = position + np.array([dist[1], dist[3], dist[5]])
-    return lo, hi, mats
+    return lo, hi, tuple(mats)
 
 
 def bake_probe(caster, position, config: BakeConfig = BakeConfig()) -> Probe:
@@ -190,7 +215,7 @@ def _cache_key(scene, positions: np.ndarray, config: BakeConfig) -> str:
     h.update(scene.static_hash().encode())
     h.update(np.round(np.asarray(positions, np.float64), 4).tobytes())
     h.update(json.dumps(asdict(config), sort_keys=True).encode())
-    h.update(b"probes-v1")
+    h.update(b"probes-v2")
     return h.hexdigest()[:24]
 
 

@@ -1,24 +1,44 @@
 """The block renderer: N sources, one or more listeners, (2, block) float32 binaural output per listener.
 
-Per block and listener: every source's signal is read from its history ring at a per-ear fractional delay
-(propagation + the HRTF's onset delay; the delay ramps across the block, which gives Doppler without clicks); a
-distance gain (Resonance Audio's log rolloff, min/max distance) with a bounded near-field boost ramps across the
-block; air absorption and occlusion (per-band transmission of every surface the source-listener segment crosses,
-smoothed across blocks) shape the spectrum together with the interpolated HRIR in one FFT multiply; a change of
-direction crossfades between the old and new filter on the input side (exact, click-free). Late reverb is a shared
-FDN per listener driven by the probes' RT60 (inverse-distance interpolated as the listener moves), with a send
-that falls with source distance following Barron's revised theory (-0.174 r/T dB). A transparent peak limiter
-acts only when a block would exceed 0.99. Memory is allocated at construction and when sources are added.
+Signal flow per block (all sources at once, array operations only; state is preallocated when sources and
+listeners are added):
+
+* Sources write their next dry block (sound-bank/file signals, looping or one-shot, or live pushed blocks) into a
+  history ring.
+* Direct path, per listener: every source is read from the ring at a per-ear fractional delay (propagation +
+  the HRTF's onset delay, ramped across the block: Doppler without clicks) with a ramped gain (rolloff curve,
+  bounded near-field boost, directivity). The delayed signals are filtered by overlap-save: one FFT per source and
+  ear, multiplied by the interpolated HRTF spectrum (barycentric over the measured directions, onset-aligned) times
+  a smooth per-band curve (air absorption x occlusion x spread), and summed over sources in the frequency domain.
+  The sum is taken with this block's and the previous block's filters and crossfaded at the output, so direction
+  changes never click.
+* Occlusion: Embree rays from each source to the listener through static and dynamic geometry; the transmission
+  of every part crossed (once per part) multiplies per band. Rays are cast only for segments that moved or when
+  the scene's dynamic state changed (a door), and only where some part's bounding box meets the segment; the
+  result is smoothed across blocks.
+* Early reflections: image sources (order 1 or 2) of the proxy box of the probe nearest the listener, from the
+  actual source and listener positions, each a ramped fractional-delay tap encoded in second-order ambisonics in
+  the head frame and decoded binaurally by least-squares spherical-harmonic HRTF filters.
+* Late reverb: a per-listener FDN (or partitioned convolution with synthesised tails) driven by the probes'
+  RT60s, inverse-distance interpolated around the listener; the send falls with source distance (Barron).
+* A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+import scipy.fft as sfft
+
+from sonicverse_core.acoustics.kernels import (accumulate, direct_geometry, encode_taps, gather, image_taps, limit,
+                                               accumulate_sh, late_send, mix_spectra, read_sources, segment_motion)
 
 from sonicverse_core.acoustics.probes import AIR_ABSORPTION, SPEED_OF_SOUND
 from sonicverse_core.errors import ConfigError, PoseError
 from sonicverse_core.scene.materials import BANDS, material_arrays
+
+MID = slice(4, 7)  # 500 Hz - 2 kHz
 
 
 @dataclass(frozen=True)
@@ -27,13 +47,20 @@ class RenderConfig:
     block: int = 256
     output: str = "binaural"  # binaural | stereo (pan) | mono
     hrtf: str = "kemar"  # or a .sofa path
+    hrtf_interpolation: str = "barycentric"  # or nearest
+    hrtf_taps: int = 0  # 0: 4 ms worth at the engine rate
     occlusion: bool = True
+    early_reflections: bool = True
+    er_order: int = 1  # image-source order (1: 6 images per source, 2: 24)
     late_reverb: bool = True
+    reverb: str = "fdn"  # fdn | convolution
     rolloff: str = "log"  # log | linear | none
     min_distance: float = 1.0
     max_distance: float = 500.0
     near_field_gain: float = 3.0  # 0..9 (Resonance: at most +19 dB)
     occlusion_smoothing: float = 0.75
+    occlusion_tolerance: float = 0.02  # m a segment end moves before its rays are cast again
+    occlusion_rays_per_block: int = 16  # segments recast per block at most (all of them when the scene changes)
 
     def __post_init__(self):
         if not (8000 <= self.sample_rate <= 192000):
@@ -44,12 +71,34 @@ class RenderConfig:
             raise ConfigError(f"output must be binaural, stereo or mono, got '{self.output}'")
         if self.rolloff not in ("log", "linear", "none"):
             raise ConfigError(f"rolloff must be log, linear or none, got '{self.rolloff}'")
-        if not (0 < self.min_distance < self.max_distance):
-            raise ConfigError("need 0 < min_distance < max_distance")
+        if not (0 < self.min_distance < self.max_distance <= 5000):
+            raise ConfigError("need 0 < min_distance < max_distance <= 5000 m")
+        if self.hrtf_interpolation not in ("barycentric", "nearest"):
+            raise ConfigError("hrtf_interpolation must be barycentric or nearest")
+        if self.er_order not in (1, 2):
+            raise ConfigError("er_order must be 1 or 2")
+        if self.reverb not in ("fdn", "convolution"):
+            raise ConfigError("reverb must be fdn or convolution")
+        if not (0 <= self.occlusion_smoothing < 1) or not (0 <= self.near_field_gain <= 9):
+            raise ConfigError("occlusion_smoothing must be in [0, 1) and near_field_gain in [0, 9]")
+        if not (0 <= self.occlusion_tolerance <= 10) or not (1 <= self.occlusion_rays_per_block <= 1_000_000):
+            raise ConfigError("occlusion_tolerance must be in [0, 10] m and occlusion_rays_per_block >= 1")
+        if self.hrtf_taps and not (16 <= self.hrtf_taps <= 4096):
+            raise ConfigError("hrtf_taps must be within 16..4096")
+
+
+@lru_cache(maxsize=8)
+def _hrtf(name: str, sample_rate: int, taps: int):
+    """The HRTF interpolator for a set ('kemar' or a SOFA path) at a rate, shared by renderers (read-only)."""
+    from assets_manifest.hrtf import kemar, load_sofa
+    from sonicverse_core.acoustics.hrtf import HrtfInterpolator
+
+    return HrtfInterpolator(kemar() if name == "kemar" else load_sofa(name), sample_rate, taps=taps)
 
 
 def distance_gain(d: np.ndarray, cfg: RenderConfig) -> np.ndarray:
-    """Rolloff gain (Resonance Audio's curves) times the near-field boost under 1 m."""
+    """Rolloff gain (Resonance Audio's curves) times the near-field boost under 1 m (bounded: at most
+    1 + 9 * near_field_gain / 9 at 0.1 m and closer)."""
     d = np.asarray(d, float)
     d0, D = max(cfg.min_distance, 1.0) if cfg.rolloff == "log" else cfg.min_distance, cfg.max_distance
     if cfg.rolloff == "log":
@@ -59,38 +108,100 @@ def distance_gain(d: np.ndarray, cfg: RenderConfig) -> np.ndarray:
     else:
         g = np.ones_like(d)
     g = np.where(d > D, 0.0, g)
-    near = 1 + (1 / np.maximum(d, 0.1) - 1) * np.clip(cfg.near_field_gain, 0, 9) / 9 * (d < 1)
+    near = 1 + (1 / np.maximum(d, 0.1) - 1) * cfg.near_field_gain / 9 * (d < 1)
     return g * near
 
 
-@dataclass
-class Source:
-    """A sound source. signal (n,) float32 at the engine rate; loop; position (3,); gain; or live=True to feed
-    blocks with :meth:`push`. attached_to: a scene object's name whose pose moves the source."""
+def directivity_gain(alpha: np.ndarray, sharpness: np.ndarray, cos_theta: np.ndarray) -> np.ndarray:
+    """Resonance Audio's pattern |(1 - alpha) + alpha cos(theta)|^sharpness (alpha 0 omni, 0.5 cardioid, 1 dipole)."""
+    return np.abs((1 - alpha) + alpha * cos_theta) ** sharpness
 
-    signal: np.ndarray | None
-    position: np.ndarray
-    loop: bool = True
-    gain: float = 1.0
-    live: bool = False
-    attached_to: str | None = None
-    cursor: int = 0
-    pending: np.ndarray | None = field(default=None, repr=False)
+
+class Source:
+    """A sound source owned by a renderer. Set ``position`` (3,), ``gain``, ``forward`` (3,) at any time.
+    directivity alpha in [0, 1] and sharpness >= 1; spread in degrees (0 point, 360 fully diffuse).
+    Live sources take blocks with :meth:`push` (missing blocks play silence)."""
+
+    def __init__(self, renderer, index: int, live: bool, attached_to: str | None):
+        self._r, self.index, self.live, self.attached_to = renderer, index, live, attached_to
+        self.pending: np.ndarray | None = None
+
+    @property
+    def position(self) -> np.ndarray:
+        return self._r._pos[self.index].copy()
+
+    @position.setter
+    def position(self, p) -> None:
+        p = np.asarray(p, float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise PoseError(f"source position must be 3 finite numbers, got {p}")
+        self._r._pos[self.index] = p
+
+    @property
+    def gain(self) -> float:
+        return float(self._r._gain[self.index])
+
+    @gain.setter
+    def gain(self, g: float) -> None:
+        if not np.isfinite(g) or g < 0:
+            raise ConfigError(f"source gain must be finite and >= 0, got {g}")
+        self._r._gain[self.index] = g
+
+    @property
+    def forward(self) -> np.ndarray:
+        return self._r._fwd[self.index].copy()
+
+    @forward.setter
+    def forward(self, v) -> None:
+        v = np.asarray(v, float)
+        n = np.linalg.norm(v) if v.shape == (3,) else 0.0
+        if not np.isfinite(n) or n < 1e-9:
+            raise PoseError(f"source forward must be a finite nonzero 3-vector, got {v}")
+        self._r._fwd[self.index] = v / n
 
     def push(self, block: np.ndarray) -> None:
-        self.pending = np.asarray(block, np.float32)
+        block = np.asarray(block, np.float32).ravel()
+        if len(block) != self._r.cfg.block:
+            raise ConfigError(f"a live block must have {self._r.cfg.block} frames, got {len(block)}")
+        self.pending = block
+
+    def restart(self) -> None:
+        self._r._cursor[self.index] = 0
 
 
 @dataclass
 class Listener:
     position: np.ndarray
     yaw: float = 0.0  # degrees, 0 faces +x, 90 faces +y
+    pitch: float = 0.0  # degrees, positive looks up
+
+    def rotation(self) -> np.ndarray:
+        """World -> head frame rotation matrix (3, 3)."""
+        c, s = np.cos(np.radians(self.yaw)), np.sin(np.radians(self.yaw))
+        cp, sp = np.cos(np.radians(self.pitch)), np.sin(np.radians(self.pitch))
+        return np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]])
 
     def head_frame(self, world: np.ndarray) -> np.ndarray:
         """World vectors (n, 3) -> head frame (x forward, y left, z up)."""
         c, s = np.cos(np.radians(self.yaw)), np.sin(np.radians(self.yaw))
-        x, y = world[:, 0], world[:, 1]
-        return np.stack([c * x + s * y, -s * x + c * y, world[:, 2]], 1)
+        x, y, z = world[..., 0], world[..., 1], world[..., 2]
+        fx, fy = c * x + s * y, -s * x + c * y
+        if self.pitch:
+            cp, sp = np.cos(np.radians(self.pitch)), np.sin(np.radians(self.pitch))
+            fx, z = cp * fx + sp * z, -sp * fx + cp * z
+        return np.stack([fx, fy, z], -1)
+
+
+def _segment_meets_boxes(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(n,) bool: does segment a->b meet any of the boxes [lo, hi] (m, 3)? (slab test)"""
+    d = (b - a)[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / np.where(np.abs(d) < 1e-12, 1e-12, d)
+        t0 = (lo[None] - a[:, None, :]) * inv
+        t1 = (hi[None] - a[:, None, :]) * inv
+    tmin = np.max(np.minimum(t0, t1), axis=2)
+    tmax = np.min(np.maximum(t0, t1), axis=2)
+    return np.any((tmax >= np.maximum(tmin, 0.0)) & (tmin <= 1.0), axis=1)
 
 
 class AcousticRenderer:
@@ -100,40 +211,142 @@ class AcousticRenderer:
         self.sources: list[Source] = []
         self.listeners: list[Listener] = []
         self.subsystems = ["direct", "distance", "air_absorption"]
+        B, fs = cfg.block, cfg.sample_rate
         self.hrtf = None
         if cfg.output == "binaural":
-            from assets_manifest.hrtf import kemar, load_sofa
-            from sonicverse_core.acoustics.hrtf import HrtfInterpolator
-
-            self.hrtf = hrtf or HrtfInterpolator(kemar() if cfg.hrtf == "kemar" else load_sofa(cfg.hrtf),
-                                                 cfg.sample_rate, taps=min(256, max(64, cfg.sample_rate // 187)))
+            taps = cfg.hrtf_taps or max(32, int(round(0.004 * fs)))
+            self.hrtf = hrtf or _hrtf(cfg.hrtf, fs, taps)
             self.subsystems.append("hrtf")
         self.taps = self.hrtf.taps if self.hrtf else 1
-        self.nfft = 1 << int(np.ceil(np.log2(cfg.block + self.taps + 16)))
-        self.freqs = np.fft.rfftfreq(self.nfft, 1 / cfg.sample_rate)
+        margin = 0 if self.hrtf is None else max(16, self.taps // 4)  # room for the band curve's ringing
+        self.nfft = 1 << int(np.ceil(np.log2(B + self.taps + margin)))
+        self.nf = self.nfft // 2 + 1
+        freqs = np.fft.rfftfreq(self.nfft, 1 / fs)
+        # smooth per-band curve over FFT bins: linear in log frequency between band centres
+        lf = np.log2(np.maximum(freqs, BANDS[0]))
+        eye = np.eye(len(BANDS))
+        self._band_matrix = np.stack([np.interp(lf, np.log2(BANDS), e) for e in eye]).astype(np.float32)
+        self._alpha, _, self._trans = material_arrays()
+        self._log_trans = 0.5 * np.log(np.maximum(self._trans, 1e-12))
         self.caster = None
-        has_geometry = scene is not None and len(scene.static_mesh()) > 0
-        if cfg.occlusion and has_geometry:
+        self._part_lo = self._part_hi = None
+        if cfg.occlusion and scene is not None and self._may_occlude(scene):
             from sonicverse_core.geometry.raycast import SceneRayCaster
 
             self.caster = SceneRayCaster(scene)
             self.subsystems.append("occlusion")
-        self.probes = probes if (cfg.late_reverb and probes) else None
-        if self.probes:
+        enclosed = [p for p in (probes or []) if p.enclosed > 0.5]
+        self.probes = enclosed or None
+        self._er = cfg.early_reflections and self.probes is not None
+        if self._er:
+            from sonicverse_core.acoustics.early import lattice, wall_reflectance
+
+            self._K = len(lattice(cfg.er_order)[0])
+            self._refl = [wall_reflectance(p.box_materials) for p in self.probes]
+            self._probe_xyz = np.array([p.position for p in self.probes])
+            self._probe_rooms = [scene.room_at(p.position[:2]) if scene is not None and scene.rooms else None
+                                 for p in self.probes]
+            self._probe_cache = {}
+            self._er_amp = {}
+            self._amb_order = 2
+            self._C = (self._amb_order + 1) ** 2
+            if self.hrtf is not None:
+                # 2nd-order SH smooths the HRTF above ~2 kHz anyway: 3 ms of filter (interaural delay included)
+                er_len = int(0.003 * fs)
+                max_rel = int(np.ceil((self.hrtf.onsets.max() - self.hrtf.onsets.min()) * fs))
+                self.er_nfft = 1 << int(np.ceil(np.log2(B + er_len + 16)))
+                big = 1 << int(np.ceil(np.log2(self.taps + max_rel + 64)))
+                self._er_filters, self._er_bulk = self.hrtf.ambisonic_filters(self._amb_order, max(big, self.er_nfft),
+                                                                             er_len)
+                if big > self.er_nfft:
+                    h = np.fft.irfft(self._er_filters, big, axis=-1)[..., :er_len]
+                    self._er_filters = np.fft.rfft(h, self.er_nfft, axis=-1).astype(np.complex64)
+            else:
+                self.er_nfft, self._er_bulk = 0, 0.0
+                dec = np.zeros((2, self._C))
+                dec[:, 0] = 0.5 if cfg.output == "stereo" else np.sqrt(0.5)
+                if cfg.output == "stereo":
+                    dec[:, 1] = [0.5 / np.sqrt(3), -0.5 / np.sqrt(3)]
+                self._er_decode = dec
+            self.subsystems.append("early_reflections")
+        self._late_on = cfg.late_reverb and self.probes is not None
+        if self._late_on:
+            self._probe_pos = np.array([p.position for p in self.probes])
+            self._probe_rt = np.array([p.rt60 for p in self.probes])
+            self._probe_vol = np.array([p.volume for p in self.probes])
             self.subsystems.append("late_reverb")
-        self._alpha, _, self._trans = material_arrays()
-        self.hist = 1 << int(np.ceil(np.log2(int(cfg.max_distance / SPEED_OF_SOUND * cfg.sample_rate)
-                                             + 2 * cfg.block + 64)))
+        max_delay = cfg.max_distance / SPEED_OF_SOUND + 0.01 + (self.hrtf.onsets.max() if self.hrtf else 0)
+        if self._er:
+            max_delay += 3 * cfg.er_order * float(np.max([np.max(p.box_hi - p.box_lo) for p in self.probes])) \
+                / SPEED_OF_SOUND
+        self.hist = B * (int(np.ceil(max_delay * fs / B)) + 3)
+        self.write = 0  # ring index of the next block's first sample
+        self._cap = 0
+        self._n = 0
+        self._bank = np.zeros(1, np.float32)
+        self._alloc_sources(8)
         self._state: list[dict] = []
-        self._ring = np.zeros((0, self.hist), np.float32)
-        self.write = 0
+        self._ramp = ((np.arange(B) + 1) / B).astype(np.float32)
+        self._ramp64 = (np.arange(B) + 1) / B
+        self.blocks = 0
+        self._rolloff = (("log", "linear", "none").index(cfg.rolloff),
+                         max(cfg.min_distance, 1.0) if cfg.rolloff == "log" else cfg.min_distance, cfg.max_distance,
+                         cfg.near_field_gain / 9)
+        self.stats = {"occlusion_rays": 0, "occlusion_skipped": 0}
+
+    def _may_occlude(self, scene) -> bool:
+        """False when no geometry can lie between two points inside the scene: no static mesh, or a convex static
+        structure (every vertex on the inner side of every face plane) and no dynamic objects."""
+        mesh = scene.static_mesh()
+        if scene.objects or len(mesh) > 2000:
+            return True
+        if len(mesh) == 0:
+            return False
+        v, f = mesh.vertices, mesh.faces
+        tri = v[f]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        centre = v.mean(0)
+        # orient normals inward (towards the centroid) and check that no vertex lies outside any face plane
+        side = np.einsum("ij,ij->i", centre - tri[:, 0], n)
+        n = np.where(side[:, None] < 0, -n, n)
+        dist = np.einsum("fvk,fk->fv", v[None, :, :] - tri[:, None, 0, :], n)
+        return bool(np.any(dist < -1e-6))
+
+    def _alloc_sources(self, cap: int) -> None:
+        def grow(a, shape, dtype, fill=0):
+            new = np.full(shape, fill, dtype)
+            if a is not None:
+                new[: len(a)] = a
+            return new
+
+        g = lambda name, shape, dtype, fill=0: setattr(self, name, grow(getattr(self, name, None), shape, dtype,
+                                                                          fill))
+        g("_pos", (cap, 3), np.float64)
+        g("_fwd", (cap, 3), np.float64)
+        self._fwd[self._cap:, 0] = 1.0
+        g("_gain", (cap,), np.float64)
+        g("_dir_alpha", (cap,), np.float64)
+        g("_dir_sharp", (cap,), np.float64, 1.0)
+        g("_spread", (cap,), np.float64)
+        g("_off", (cap,), np.int64)
+        g("_len", (cap,), np.int64, 1)
+        g("_cursor", (cap,), np.int64)
+        g("_loop", (cap,), bool)
+        g("_live", (cap,), bool)
+        g("_ring", (cap, getattr(self, "hist", 1)), np.float32)
+        for st in getattr(self, "_state", []):
+            self._grow_state(st, cap)
+        self._cap = cap
 
     # --- setup ------------------------------------------------------------------------------------------------
     def add_source(self, signal=None, position=(0, 0, 0), loop=True, gain=1.0, live=False, attached_to=None,
-                   sample_rate=None) -> Source:
+                   sample_rate=None, directivity=0.0, sharpness=1.0, forward=(1, 0, 0), spread=0.0) -> Source:
         pos = np.asarray(position, float)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)):
             raise PoseError(f"source position must be 3 finite numbers, got {position}")
+        if not (0 <= directivity <= 1) or not (1 <= sharpness <= 100) or not (0 <= spread <= 360):
+            raise ConfigError("directivity must be in [0, 1], sharpness in [1, 100], spread in [0, 360] degrees")
         if signal is not None:
             signal = np.asarray(signal, np.float32).ravel()
             if sample_rate is not None and sample_rate != self.cfg.sample_rate:
@@ -141,164 +354,346 @@ class AcousticRenderer:
 
                 g = np.gcd(int(sample_rate), self.cfg.sample_rate)
                 signal = resample_poly(signal, self.cfg.sample_rate // g, int(sample_rate) // g).astype(np.float32)
+            if len(signal) == 0:
+                raise ConfigError("a source signal must not be empty")
             if not np.all(np.isfinite(signal)):
                 raise ConfigError("source signal contains NaN or infinite samples")
         elif not live:
             raise ConfigError("a source needs a signal or live=True")
-        s = Source(signal, pos, loop, float(gain), live, attached_to)
+        if attached_to is not None and (self.scene is None or all(o.name != attached_to for o in self.scene.objects)):
+            raise ConfigError(f"cannot attach a source to '{attached_to}': no such object in the scene")
+        i = self._n
+        if i >= self._cap:
+            self._alloc_sources(2 * self._cap)
+        if signal is not None:
+            self._off[i] = len(self._bank)
+            self._len[i] = len(signal)
+            self._bank = np.concatenate([self._bank, signal])
+        self._cursor[i], self._loop[i], self._live[i] = 0, bool(loop), bool(live)
+        self._dir_alpha[i], self._dir_sharp[i], self._spread[i] = directivity, sharpness, spread
+        self._any_spread = bool(np.any(self._spread[: i + 1] > 0))
+        self._n += 1
+        s = Source(self, i, live, attached_to)
+        s.position, s.gain, s.forward = pos, float(gain), forward
+        for st in self._state:
+            st["fresh"][i] = True
         self.sources.append(s)
-        self._ring = np.vstack([self._ring, np.zeros((1, self.hist), np.float32)])
         return s
 
-    def add_listener(self, position=(0, 0, 1.5), yaw=0.0) -> Listener:
-        lis = Listener(np.asarray(position, float), float(yaw))
-        self.set_listener(lis, position, yaw)
+    def add_listener(self, position=(0, 0, 1.5), yaw=0.0, pitch=0.0) -> Listener:
+        lis = Listener(np.zeros(3))
+        self.set_listener(lis, position, yaw, pitch)
         self.listeners.append(lis)
-        st = {"prev": None, "tail": np.zeros((2, self.nfft)), "limit": 1.0}
-        if self.probes:
-            from sonicverse_core.acoustics.reverb import FDNReverb
+        st = {"limit": 1.0, "pose": None, "scene_version": None}
+        self._grow_state(st, self._cap)
+        if self._er:
+            st["er_hist"] = np.zeros((self._C, max(self.er_nfft, self.cfg.block)), np.float32)
+            st["er_acc"] = np.zeros((2, self.er_nfft // 2 + 1), np.complex64)
+            st["er_filters"] = None
+        if self._late_on:
+            if self.cfg.reverb == "fdn":
+                from sonicverse_core.acoustics.reverb import FDNReverb
 
-            st["fdn"] = FDNReverb(self.cfg.sample_rate, self.cfg.block)
+                st["fdn"] = FDNReverb(self.cfg.sample_rate, self.cfg.block)
+            else:
+                from sonicverse_core.acoustics.reverb import ConvolutionReverb
+
+                st["conv"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._probe_rt)
+            st["late_level"] = None
         self._state.append(st)
         return lis
 
+    def _grow_state(self, st: dict, cap: int) -> None:
+        K = self._K if getattr(self, "_er", False) else 0
+
+        def grow(key, shape, dtype, fill=0):
+            new = np.full(shape, fill, dtype)
+            if key in st:
+                new[: len(st[key])] = st[key]
+            st[key] = new
+
+        grow("hist", (cap, 2, self.nfft), np.float32)
+        grow("delay", (cap, 2), np.float64)
+        grow("gain", (cap,), np.float64)
+        grow("spec", (cap, 2, self.nf), np.complex64)
+        grow("spec_new", (cap, 2, self.nf), np.complex64)
+        st["acc"] = np.zeros((2, 2, self.nf), np.complex64)
+        grow("occ", (cap, len(BANDS)), np.float64, 1.0)
+        grow("occ_target", (cap, len(BANDS)), np.float64, 1.0)
+        grow("occ_seg", (cap, 6), np.float64, np.nan)
+        grow("fresh", (cap,), bool, True)
+        if K:
+            grow("er_delay", (cap, K), np.float64)
+            grow("er_gain", (cap, K), np.float64)
+            grow("er_Y", (cap, K, (2 + 1) ** 2), np.float64)
+            grow("er_delay_new", (cap, K), np.float64)
+            grow("er_gain_new", (cap, K), np.float64)
+            grow("er_Y_new", (cap, K, (2 + 1) ** 2), np.float64)
+            st["amb"] = np.zeros(((2 + 1) ** 2, self.cfg.block), np.float32)
+        grow("send", (cap,), np.float64)
+
     @staticmethod
-    def set_listener(lis: Listener, position, yaw) -> None:
+    def set_listener(lis: Listener, position, yaw, pitch=None) -> None:
         p = np.asarray(position, float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)) or not np.isfinite(yaw):
-            raise PoseError(f"listener pose must be finite, got {position}, yaw {yaw}")
+        if p.shape != (3,) or not np.all(np.isfinite(p)) or not np.isfinite(yaw) or \
+                (pitch is not None and not np.isfinite(pitch)):
+            raise PoseError(f"listener pose must be finite, got {position}, yaw {yaw}, pitch {pitch}")
         lis.position, lis.yaw = p, float(yaw)
+        if pitch is not None:
+            lis.pitch = float(pitch)
 
     # --- per block ---------------------------------------------------------------------------------------------
     def _advance_sources(self) -> None:
-        B = self.cfg.block
-        w = (self.write + np.arange(B)) % self.hist
-        for i, s in enumerate(self.sources):
-            if s.attached_to and self.scene is not None:
-                s.position = self.scene.object(s.attached_to).position + np.array([0, 0, 0.3])
-            if s.live:
-                blk = s.pending if s.pending is not None and len(s.pending) == B else np.zeros(B, np.float32)
-                s.pending = None
-            else:
-                n = len(s.signal)
-                if s.loop:
-                    blk = s.signal[(s.cursor + np.arange(B)) % n]
-                else:
-                    idx = s.cursor + np.arange(B)
-                    blk = np.where(idx < n, s.signal[np.minimum(idx, n - 1)], 0.0)
-                s.cursor += B
-            self._ring[i, w] = blk * s.gain
-        self.write = (self.write + B) % self.hist
+        n, B = self._n, self.cfg.block
+        w0 = self.write
+        if n == 0:
+            self.write = (w0 + B) % self.hist
+            return
+        for s in self.sources:
+            if s.attached_to is not None:
+                self._pos[s.index] = self.scene.object(s.attached_to).position + np.array([0, 0, 0.3])
+        read_sources(self._bank, self._off[:n], self._len[:n], self._cursor[:n], self._loop[:n], self._gain[:n],
+                     self._ring, w0, B)
+        for i in np.flatnonzero(self._live[:n]):
+            s = self.sources[i]
+            self._ring[i, w0:w0 + B] = 0.0 if s.pending is None else s.pending * np.float32(self._gain[i])
+            s.pending = None
+        self.write = (w0 + B) % self.hist
 
-    def _band_curve(self, band_amp: np.ndarray) -> np.ndarray:
-        """(m, 9) amplitude per band -> (m, nfreq) smooth curve over FFT bins (log-frequency interpolation)."""
-        lf = np.log2(np.maximum(self.freqs, BANDS[0]))
-        return np.stack([np.interp(lf, np.log2(BANDS), a) for a in band_amp]) if len(band_amp) else \
-            np.zeros((0, len(self.freqs)))
+    def _occlusion(self, st: dict, lis: Listener) -> None:
+        """Update the per-band occlusion amplitudes of every source (n, 9) for this listener."""
+        n = self._n
+        if self.caster is None:
+            return
+        version = self.scene.dynamic_version
+        if version != st["scene_version"]:
+            todo = np.ones(n, bool)
+            st["scene_version"] = version
+            self._part_boxes()
+        else:
+            # recast the segments that moved more than occlusion_tolerance, most-moved first, at most
+            # occlusion_rays_per_block of them (never-cast segments have NaN and go first)
+            moved = np.empty(n)
+            segment_motion(self._pos[:n], lis.position, st["occ_seg"][:n], moved)
+            todo = moved > self.cfg.occlusion_tolerance
+            budget = self.cfg.occlusion_rays_per_block
+            if np.count_nonzero(todo) > budget:
+                keep = np.argpartition(-moved, budget)[:budget]
+                todo = np.zeros(n, bool)
+                todo[keep] = True
+        if np.any(todo):
+            idx = np.flatnonzero(todo)
+            seg = np.concatenate([self._pos[idx], np.broadcast_to(lis.position, (len(idx), 3))], axis=1)
+            a, b = seg[:, :3], seg[:, 3:]
+            near = _segment_meets_boxes(a, b, self._part_lo, self._part_hi) if len(self._part_lo) else \
+                np.zeros(len(idx), bool)
+            target = np.ones((len(idx), len(BANDS)))
+            cast = np.flatnonzero(near & (np.linalg.norm(b - a, axis=1) > 1e-6))
+            self.stats["occlusion_rays"] += len(cast)
+            self.stats["occlusion_skipped"] += len(idx) - len(cast)
+            if len(cast):
+                cr = self.caster.crossings(a[cast], b[cast])
+                if len(cr.ray):
+                    key = cr.ray.astype(np.int64) * (int(cr.part.max()) + 1) + cr.part
+                    _, first = np.unique(key, return_index=True)  # a part counts once per segment
+                    logamp = np.zeros((len(cast), len(BANDS)))
+                    np.add.at(logamp, cr.ray[first], self._log_trans[cr.material[first]])
+                    target[cast] = np.exp(logamp)
+            st["occ_target"][idx] = target
+            st["occ_seg"][idx] = seg
 
-    def _occlusion(self, lis: Listener) -> np.ndarray:
-        n = len(self.sources)
-        amp = np.ones((n, len(BANDS)))
-        if self.caster is None or n == 0:
-            return amp
-        a = np.array([s.position for s in self.sources])
-        b = np.tile(lis.position, (n, 1))
-        cr = self.caster.crossings(a, b)
-        if len(cr.ray):
-            key = np.unique(np.stack([cr.ray, cr.part], 1), axis=0)  # a part counts once per segment
-            mats = {}
-            for (r, p), m in zip(np.stack([cr.ray, cr.part], 1), cr.material):
-                mats[(int(r), int(p))] = int(m)
-            for r, p in key:
-                amp[r] *= np.sqrt(self._trans[mats[(int(r), int(p))]])
-        return amp
+    def _part_boxes(self) -> None:
+        """Bounding boxes of every static part and dynamic object (for the occlusion pre-check)."""
+        los, his = [], []
+        mesh = self.scene.static_mesh()
+        if len(mesh):
+            tri = mesh.vertices[mesh.faces]
+            part = mesh.face_part
+            order = np.argsort(part, kind="stable")
+            bounds = np.unique(part[order], return_index=True)[1]
+            los.append(np.minimum.reduceat(tri.min(1)[order], bounds))
+            his.append(np.maximum.reduceat(tri.max(1)[order], bounds))
+        dyn = self.scene.dynamic_mesh()
+        if dyn is not None and len(dyn):
+            tri = dyn.vertices[dyn.faces]
+            los.append(tri.min(1).min(0, keepdims=True))
+            his.append(tri.max(1).max(0, keepdims=True))
+            part = dyn.face_part
+            order = np.argsort(part, kind="stable")
+            bounds = np.unique(part[order], return_index=True)[1]
+            los[-1] = np.minimum.reduceat(tri.min(1)[order], bounds)
+            his[-1] = np.maximum.reduceat(tri.max(1)[order], bounds)
+        self._part_lo = np.concatenate(los) - 1e-3 if los else np.zeros((0, 3))
+        self._part_hi = np.concatenate(his) + 1e-3 if his else np.zeros((0, 3))
+
+    def _gather(self, n: int, d_old, d_new, g_old, g_new) -> np.ndarray:
+        """Read the ring's first n rows at delays (n, e) seconds and gains (n, e), both ramping old -> new across
+        the block, with linear interpolation: (n, e, B) float32."""
+        out = np.empty(d_new.shape + (self.cfg.block,), np.float32)
+        gather(self._ring, self.write - self.cfg.block, d_old, d_new, float(self.cfg.sample_rate), g_old, g_new, out)
+        return out
 
     def render_block(self) -> list[np.ndarray]:
         """Advance one block; returns one (2, block) float32 array per listener."""
-        cfg, B = self.cfg, self.cfg.block
         if not self.listeners:
             raise ConfigError("add a listener before rendering")
         self._advance_sources()
         outs = []
-        n = len(self.sources)
         for li, lis in enumerate(self.listeners):
             st = self._state[li]
-            out = np.zeros((2, B))
-            if n:
-                pos = np.array([s.position for s in self.sources])
-                rel = pos - lis.position
+            out = np.zeros((2, self.cfg.block))
+            if self._n:
+                rel = self._pos[: self._n] - lis.position
                 dist = np.linalg.norm(rel, axis=1)
-                head = lis.head_frame(rel)
-                if self.hrtf is not None:
-                    filt, onset = self.hrtf.lookup(np.where(dist[:, None] > 1e-6, head, [1.0, 0, 0]))
-                else:
-                    az = np.arctan2(head[:, 1], head[:, 0])
-                    pan = np.stack([np.sqrt(0.5 * (1 + np.sin(az))), np.sqrt(0.5 * (1 - np.sin(az)))], 1)
-                    if cfg.output == "mono":
-                        pan = np.full((n, 2), np.sqrt(0.5))
-                    filt = np.zeros((n, 2, 1))
-                    filt[:, :, 0] = pan
-                    onset = np.zeros((n, 2))
-                gain = distance_gain(dist, cfg)
-                occ = self._occlusion(lis)
-                air = np.exp(-0.5 * AIR_ABSORPTION[None] * np.minimum(dist, cfg.max_distance)[:, None])
-                prev = st.get("prev")
-                if prev is None or len(prev["gain"]) != n:  # new sources start from their current state
-                    prev = {"occ": occ, "gain": gain, "delay": None, "spec": None}
-                if self.caster is not None:
-                    occ = cfg.occlusion_smoothing * prev["occ"] + (1 - cfg.occlusion_smoothing) * occ
-                spec = np.fft.rfft(filt, self.nfft, axis=-1) * self._band_curve(air * occ)[:, None, :]
-                delay = np.minimum(dist, cfg.max_distance)[:, None] / SPEED_OF_SOUND + onset  # (n, 2) s
-                p_delay = delay if prev["delay"] is None else prev["delay"]
-                p_spec = spec if prev["spec"] is None else prev["spec"]
-                ramp = (np.arange(B) + 1) / B
-                d_smp = (p_delay[..., None] + (delay - p_delay)[..., None] * ramp) * cfg.sample_rate  # (n, 2, B)
-                readpos = (self.write - B + np.arange(B)) - d_smp
-                i0 = np.floor(readpos).astype(np.int64)
-                fr = (readpos - i0).astype(np.float32)
-                rows = np.arange(n)[:, None, None]
-                x = self._ring[rows, i0 % self.hist] * (1 - fr) + self._ring[rows, (i0 + 1) % self.hist] * fr
-                x = x * (prev["gain"][:, None, None] + (gain - prev["gain"])[:, None, None] * ramp)
-                X_new = np.fft.rfft(x * ramp, self.nfft, axis=-1)
-                X_old = np.fft.rfft(x * (1 - ramp), self.nfft, axis=-1)
-                acc = np.einsum("nef,nef->ef", X_new, spec) + np.einsum("nef,nef->ef", X_old, p_spec)
-                st["prev"] = {"occ": occ, "gain": gain, "delay": delay, "spec": spec}
-                y = np.fft.irfft(acc, self.nfft, axis=-1)
-                y[:, : self.nfft] += st["tail"]
-                out += y[:, :B]
-                st["tail"] = np.concatenate([y[:, B:], np.zeros((2, B))], axis=1)
-                if "fdn" in st:
-                    out += self._late(st, lis, dist, gain)
+                self._occlusion(st, lis)
+                k = self.cfg.occlusion_smoothing if self.blocks else 0.0
+                occ = st["occ"][: self._n]
+                occ += (1 - k) * (st["occ_target"][: self._n] - occ)
+                occ[st["fresh"][: self._n]] = st["occ_target"][: self._n][st["fresh"][: self._n]]
+                out += self._direct(st, lis, rel, dist, occ)
+                if self._er:
+                    out += self._early(st, lis, occ)
+                if self._late_on:
+                    out += self._late(st, lis, dist, occ)
+                st["fresh"][: self._n] = False
             outs.append(self._limit(st, out))
+        self.blocks += 1
         return outs
 
-    def _late(self, st, lis, dist, gain) -> np.ndarray:
-        probes = self.probes
-        P = np.array([p.position for p in probes])
-        w = 1 / np.maximum(np.linalg.norm(P - lis.position, axis=1), 0.1) ** 2
-        w /= w.sum()
-        rt = np.einsum("k,kb->b", w, np.array([p.rt60 for p in probes]))
-        vol = float(np.dot(w, [p.volume for p in probes]))
-        lo, hi = float(np.mean(rt[2:5])), float(np.mean(rt[7:9]))
-        st["fdn"].set_rt60(lo, hi)
-        # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
-        level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
-        barron = 10 ** (-0.174 * dist / max(lo, 0.05) / 20)  # Barron & Lee 1988: late level falls with distance
-        B = self.cfg.block
-        send = barron @ self._ring[:, (self.write - B + np.arange(B)) % self.hist]
-        return st["fdn"].process(send) * level * 0.5
+    def _direct(self, st, lis, rel, dist, occ) -> np.ndarray:
+        cfg, n, B = self.cfg, self._n, self.cfg.block
+        dirs, gain, amp, delay0 = np.empty((n, 3)), np.empty(n), np.empty((n, len(BANDS)), np.float32), np.empty(n)
+        direct_geometry(self._pos[:n], lis.position, lis.rotation(), self._fwd[:n], self._dir_alpha[:n],
+                        self._dir_sharp[:n], occ, AIR_ABSORPTION, *self._rolloff, SPEED_OF_SOUND, dirs, dist, gain,
+                        amp, delay0)
+        curve = amp @ self._band_matrix  # (n, nf)
+        spec = st["spec_new"][:n]
+        if self.hrtf is not None:
+            if cfg.hrtf_interpolation == "nearest":
+                i = np.argmax(dirs @ self.hrtf.directions.T, axis=1)
+                tri, w = np.stack([i, i, i], 1), np.tile([1.0, 0.0, 0.0], (n, 1))
+            else:
+                tri, w = self.hrtf.fast_weights(dirs)
+            spread = self._spread[:n] / 360.0
+            mix_spectra(self.hrtf.spectra(self.nfft), tri, w, curve, spread, self._diffuse_spectrum(), spec)
+            onset = np.einsum("mk,mke->me", w, self.hrtf.onsets[tri])
+            if self._any_spread:
+                onset += (self.hrtf.onsets.mean(0)[None] - onset) * spread[:, None]
+        else:
+            u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+            if cfg.output == "mono":
+                pan = np.full((n, 2), np.sqrt(0.5))
+            else:
+                pan = np.stack([np.sqrt(0.5 * (1 + u[:, 1])), np.sqrt(0.5 * (1 - u[:, 1]))], 1)
+            spec[:] = pan[:, :, None].astype(np.float32) * curve[:, None, :]
+            onset = np.zeros((n, 2))
+        delay = delay0[:, None] + onset
+        fresh = st["fresh"][:n]
+        p_delay, p_gain, p_spec = st["delay"][:n], st["gain"][:n], st["spec"][:n]
+        if np.any(fresh):
+            p_delay[fresh], p_gain[fresh], p_spec[fresh] = delay[fresh], gain[fresh], spec[fresh]
+        h = st["hist"][:n]
+        h[:, :, :-B] = h[:, :, B:]
+        gather(self._ring, self.write - B, p_delay, delay, float(cfg.sample_rate), p_gain[:, None], gain[:, None],
+               h[:, :, -B:])  # (n, 2, B) fractional-delay taps, straight into the overlap-save input
+        X = sfft.rfft(h, axis=-1)
+        acc = st["acc"]
+        if accumulate(X, spec, p_spec, acc[1], acc[0]):
+            both = sfft.irfft(acc, self.nfft, axis=-1)[..., -B:]
+            y = both[0] + (both[1] - both[0]) * self._ramp
+        else:
+            y = sfft.irfft(acc[1], self.nfft, axis=-1)[:, -B:]
+        p_delay[:], p_gain[:] = delay, gain
+        st["spec"], st["spec_new"] = st["spec_new"], st["spec"]  # this block's filters become the previous ones
+        return y
+
+    def _diffuse_spectrum(self) -> np.ndarray:
+        """Power-average HRTF magnitude over all measured directions (2, nf), zero phase: the fully spread source."""
+        if getattr(self, "_diffuse", None) is None:
+            if self.hrtf is None:
+                return np.zeros((2, self.nf), np.complex64)
+            H = self.hrtf.spectra(self.nfft)
+            self._diffuse = np.sqrt(np.mean(np.abs(H) ** 2, axis=0)).astype(np.complex64)
+        return self._diffuse
+
+    def _nearest_probe(self, p: np.ndarray) -> int:
+        """The probe for the listener's early reflections: the nearest one in the listener's room (the nearest
+        overall where the room is unknown or has none); cached while the listener stays within 10 cm."""
+        key = self._probe_cache.get("key")
+        if key is None or np.max(np.abs(key - p)) > 0.05:
+            d2 = np.sum((self._probe_xyz - p) ** 2, axis=1)
+            room = self.scene.room_at(p[:2]) if self.scene is not None and self.scene.rooms else None
+            same = np.array([r is not None and r is room for r in self._probe_rooms]) if room is not None else None
+            if same is not None and same.any():
+                d2 = np.where(same, d2, np.inf)
+            self._probe_cache = {"key": p.copy(), "k": int(np.argmin(d2))}
+        return self._probe_cache["k"]
+
+    def _early(self, st, lis, occ) -> np.ndarray:
+        """Image sources of the nearest probe's box, encoded in 2nd-order ambisonics, decoded binaurally."""
+        from sonicverse_core.acoustics.early import image_sources, lattice
+
+        cfg, n, B = self.cfg, self._n, self.cfg.block
+        k = self._nearest_probe(lis.position)
+        pr = self.probes[k]
+        if k not in self._er_amp:
+            self._er_amp[k] = image_sources(pr.box_lo[None], pr.box_lo, pr.box_hi, self._refl[k], cfg.er_order)[1]
+        q, m, _ = lattice(cfg.er_order)
+        delay, gain, Y = st["er_delay_new"][:n], st["er_gain_new"][:n], st["er_Y_new"][:n]
+        image_taps(self._pos[:n], pr.box_lo, pr.box_hi, q, m, self._er_amp[k], lis.position, lis.rotation(),
+                   *self._rolloff, np.ascontiguousarray(occ[:, MID].mean(1)), self._er_bulk, SPEED_OF_SOUND, delay,
+                   gain, Y)
+        fresh = st["fresh"][:n]
+        pd, pg, pY = st["er_delay"][:n], st["er_gain"][:n], st["er_Y"][:n]
+        if np.any(fresh):
+            pd[fresh], pg[fresh], pY[fresh] = delay[fresh], gain[fresh], Y[fresh]
+        amb = st["amb"]
+        encode_taps(self._ring, self.write - B, pd, delay, float(cfg.sample_rate), pg, gain, pY, Y, self._ramp, amb)
+        for a, b in (("er_delay", "er_delay_new"), ("er_gain", "er_gain_new"), ("er_Y", "er_Y_new")):
+            st[a], st[b] = st[b], st[a]
+        if self.hrtf is None:
+            return self._er_decode @ amb
+        h = st["er_hist"]
+        h[:, :-B] = h[:, B:]
+        h[:, -B:] = amb
+        A = sfft.rfft(h, axis=-1)
+        acc = st["er_acc"]
+        accumulate_sh(A, self._er_filters, acc)
+        return sfft.irfft(acc, self.er_nfft, axis=-1)[:, -B:]
+
+    def _late(self, st, lis, dist, occ) -> np.ndarray:
+        cfg, n, B = self.cfg, self._n, self.cfg.block
+        key = st.get("late_key")
+        if key is None or np.max(np.abs(key - lis.position)) > 0.01:  # probe interpolation, per centimetre moved
+            w = 1 / np.maximum(np.linalg.norm(self._probe_pos - lis.position, axis=1), 0.1) ** 2
+            w /= w.sum()
+            rt = w @ self._probe_rt
+            vol = float(w @ self._probe_vol)
+            lo, hi = float(np.mean(rt[2:5])), float(np.mean(rt[7:9]))
+            # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
+            level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
+            st["late_key"], st["late_params"] = lis.position.copy(), (w, lo, hi, level)
+        w, lo, hi, level = st["late_params"]
+        # Barron & Lee 1988: the late level falls with source distance; a source behind walls excites the
+        # coupled space: the send keeps the square root of the direct path's mid-band transmission
+        mono = np.empty(B, np.float32)
+        late_send(self._ring, (self.write - B) % self.hist, dist, occ, lo, st["send"][:n], st["fresh"][:n], mono)
+        p_level = st["late_level"] if st["late_level"] is not None else level
+        lv = p_level + (level - p_level) * self._ramp64
+        st["late_level"] = level
+        if "fdn" in st:
+            old = st.get("fdn_rt")
+            if old is None or abs(old[0] - lo) > 0.002 * lo or abs(old[1] - hi) > 0.002 * hi:  # 0.2 %
+                st["fdn"].set_rt60(lo, hi)
+                st["fdn_rt"] = (lo, hi)
+            return st["fdn"].process(mono) * lv
+        return st["conv"].process(mono, w) * lv
 
     @staticmethod
     def _limit(st, out: np.ndarray) -> np.ndarray:
-        out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
-        peak = float(np.max(np.abs(out))) if out.size else 0.0
-        target = min(1.0, 0.99 / peak) if peak > 0.99 else 1.0
-        g = st["limit"]
-        ramp = g + (target - g) * np.minimum(1.0, (np.arange(out.shape[1]) + 1) / max(1, out.shape[1] // 4))
-        st["limit"] = target if target < 1.0 else min(1.0, g + 0.05)
-        res = np.clip(out * ramp, -1.0, 1.0)
-        res[np.abs(res) < 1e-30] = 0.0
-        return res.astype(np.float32)
+        res = np.empty(out.shape, np.float32)
+        st["limit"] = limit(np.ascontiguousarray(out, np.float64), res, st["limit"], 0.05)
+        return res
 
     def render(self, seconds: float) -> list[np.ndarray]:
         """Render ``seconds`` of audio: one (2, n) float32 array per listener."""

@@ -1,0 +1,383 @@
+"""Compiled per-sample kernels of the renderer (numba, cached on disk, GIL released).
+
+NumPy would do each of these with several full-size temporaries per block; compiled loops touch every sample once,
+allocate nothing and release the GIL, so the audio thread and the frame loop can run side by side. Every kernel
+has a NumPy twin in the tests that it must match.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+# reassociation (vectorised sums) without assuming finite values
+_fast = dict(_opts, fastmath={"reassoc", "contract", "nsz", "arcp"})
+
+
+@njit(**_opts)
+def read_sources(bank, off, length, cursor, loop, gain, ring, w0, B):
+    """Copy each source's next B samples (looping or one-shot, scaled by its gain) into ring[:, w0:w0+B]."""
+    n = len(off)
+    for i in range(n):
+        L = length[i]
+        c = cursor[i]
+        g = np.float32(gain[i])
+        for t in range(B):
+            k = c + t
+            if loop[i]:
+                ring[i, w0 + t] = bank[off[i] + k % L] * g
+            elif k < L:
+                ring[i, w0 + t] = bank[off[i] + k] * g
+            else:
+                ring[i, w0 + t] = 0.0
+        cursor[i] = c + B
+
+
+@njit(**_opts)
+def gather(ring, base, d_old, d_new, fs, g_old, g_new, out):
+    """Fractional-delay taps with linear interpolation: out[i, e, t] = ring[i, base + t - d(t) fs] * g(t), where
+    delay d and gain g ramp linearly from *_old to *_new across the block (t = 1..B). ring (n, H);
+    d_* (n, E); g_* (n, E) or (n, 1); out (n, E, B) float32."""
+    n, E, B = out.shape
+    H = ring.shape[1]
+    for i in range(n):
+        for e in range(E):
+            d0 = d_old[i, e] * fs
+            dd = (d_new[i, e] * fs - d0) / B
+            ge = e if g_old.shape[1] > 1 else 0  # gains (n, 1) are shared by all taps of a source
+            g0 = g_old[i, ge]
+            dg = (g_new[i, ge] - g0) / B
+            if g0 == 0.0 and dg == 0.0:
+                for t in range(B):
+                    out[i, e, t] = 0.0
+                continue
+            _tap(ring[i], base, d0, dd, g0, dg, out[i, e])
+
+
+@njit(**_opts)
+def _tap(row, base, d0, dd, g0, dg, out):
+    """One fractional-delay tap of a ring row into out (B,), delay d0 + dd (t + 1) samples, gain g0 + dg (t + 1)."""
+    B = len(out)
+    H = len(row)
+    start = (base - d0 - dd) % H  # read position of t = 0, in [0, H)
+    step = 1.0 - dd
+    end = start + step * (B - 1)
+    if step >= 0.0 and end < H - 2 and step < 1e6:  # common case, no wrap inside the block: 32.32 fixed point
+        p = np.int64(start * 4294967296.0)
+        inc = np.int64(step * 4294967296.0)
+        g = g0 + dg
+        for t in range(B):
+            j = p >> 32
+            fr = np.float32((p & 0xFFFFFFFF) * 2.3283064365386963e-10)
+            a = row[j]
+            out[t] = (a + (row[j + 1] - a) * fr) * np.float32(g)
+            p += inc
+            g += dg
+        return
+    for t in range(B):
+        pos = start + step * t
+        j = int(np.floor(pos))
+        fr = pos - j
+        j %= H
+        j1 = j + 1
+        if j1 == H:
+            j1 = 0
+        a = row[j]
+        out[t] = (a + (row[j1] - a) * fr) * (g0 + dg * (t + 1))
+
+
+@njit(**_fast)
+def encode_taps(ring, base, d_old, d_new, fs, g_old, g_new, Y_old, Y_new, ramp, amb):
+    """Image-source taps encoded into ambisonics: amb[c, t] += tap_ik(t) (Y_old[i, k, c] + (Y_new - Y_old) ramp[t])
+    for source i and image k; taps whose gain stays 0 are skipped. amb (C, B) is overwritten."""
+    n, K = d_new.shape
+    C, B = amb.shape
+    amb[:] = 0.0
+    tmp = np.empty(B, np.float32)
+    for i in range(n):
+        for k in range(K):
+            g0 = g_old[i, k]
+            g1 = g_new[i, k]
+            if g0 == 0.0 and g1 == 0.0:
+                continue
+            d0 = d_old[i, k] * fs
+            _tap(ring[i], base, d0, (d_new[i, k] * fs - d0) / B, g0, (g1 - g0) / B, tmp)
+            for c in range(C):
+                yo = np.float32(Y_old[i, k, c])
+                dy = np.float32(Y_new[i, k, c]) - yo
+                for t in range(B):
+                    amb[c, t] += tmp[t] * (yo + dy * ramp[t])
+
+
+@njit(**_opts)
+def barycentric(dirs, grid, step, inv, tris):
+    """HRTF triangle and barycentric weights of unit vectors (m, 3): the grid cell's triangle first, then the
+    whole hull (the triangle whose smallest weight is largest). Returns vertex indices (m, 3), weights (m, 3)."""
+    m = dirs.shape[0]
+    idx = np.empty((m, 3), np.int64)
+    w = np.empty((m, 3))
+    na, ne = grid.shape[0], grid.shape[1]
+    for i in range(m):
+        x, y, z = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        r = np.sqrt(x * x + y * y + z * z)
+        if r < 1e-12:
+            x, y, z, r = 1.0, 0.0, 0.0, 1.0
+        x, y, z = x / r, y / r, z / r
+        ia = int((np.degrees(np.arctan2(y, x)) + 180.0) / step)
+        ie = int((np.degrees(np.arcsin(min(1.0, max(-1.0, z)))) + 90.0) / step)
+        ia = min(max(ia, 0), na - 1)
+        ie = min(max(ie, 0), ne - 1)
+        nc = grid.shape[2]
+        best, bmin = grid[ia, ie, 0], -1e30
+        for k in range(-nc, len(tris)):  # the cell's candidates first, then every triangle
+            tt = grid[ia, ie, k + nc] if k < 0 else k
+            w0 = inv[tt, 0, 0] * x + inv[tt, 0, 1] * y + inv[tt, 0, 2] * z
+            w1 = inv[tt, 1, 0] * x + inv[tt, 1, 1] * y + inv[tt, 1, 2] * z
+            w2 = inv[tt, 2, 0] * x + inv[tt, 2, 1] * y + inv[tt, 2, 2] * z
+            mn = min(w0, min(w1, w2))
+            if mn > bmin:
+                bmin, best = mn, tt
+            if mn >= -1e-9:
+                break
+        tt = best
+        w0 = max(0.0, inv[tt, 0, 0] * x + inv[tt, 0, 1] * y + inv[tt, 0, 2] * z)
+        w1 = max(0.0, inv[tt, 1, 0] * x + inv[tt, 1, 1] * y + inv[tt, 1, 2] * z)
+        w2 = max(0.0, inv[tt, 2, 0] * x + inv[tt, 2, 1] * y + inv[tt, 2, 2] * z)
+        s = max(w0 + w1 + w2, 1e-12)
+        idx[i, 0], idx[i, 1], idx[i, 2] = tris[tt, 0], tris[tt, 1], tris[tt, 2]
+        w[i, 0], w[i, 1], w[i, 2] = w0 / s, w1 / s, w2 / s
+    return idx, w
+
+
+@njit(**_fast)
+def mix_spectra(H, idx, w, curve, spread, diffuse, out):
+    """out[i, e, f] = (sum_k w[i, k] H[idx[i, k], e, f] (1 - s_i) + s_i diffuse[e, f]) * curve[i, f]."""
+    n, E, F = out.shape
+    for i in range(n):
+        a, b, c = idx[i, 0], idx[i, 1], idx[i, 2]
+        wa, wb, wc = np.float32(w[i, 0]), np.float32(w[i, 1]), np.float32(w[i, 2])
+        s = np.float32(spread[i])
+        for e in range(E):
+            for f in range(F):
+                h = wa * H[a, e, f] + wb * H[b, e, f] + wc * H[c, e, f]
+                if s > 0:
+                    h = h * (1 - s) + diffuse[e, f] * s
+                out[i, e, f] = h * curve[i, f]
+
+
+@njit(**_fast)
+def accumulate(X, spec, p_spec, acc_new, acc_old):
+    """acc_new = sum_i X[i] spec[i]; acc_old = sum_i X[i] p_spec[i]. Returns True when some filter changed."""
+    n, E, F = X.shape
+    acc_new[:] = 0
+    acc_old[:] = 0
+    changed = False
+    for i in range(n):
+        for e in range(E):
+            if not changed:
+                for f in range(F):
+                    if p_spec[i, e, f] != spec[i, e, f]:
+                        changed = True
+                        break
+            for f in range(F):
+                acc_new[e, f] += X[i, e, f] * spec[i, e, f]
+            for f in range(F):
+                acc_old[e, f] += X[i, e, f] * p_spec[i, e, f]
+    return changed
+
+
+@njit(**_opts)
+def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm):
+    """One block of an N-line FDN with a Householder feedback matrix and one-pole damping per line.
+    buf (N, size) ring; pos: write index; z (N,) filter states. Returns the new write index."""
+    N, size = buf.shape
+    B = len(x)
+    h = 2.0 / N
+    y = np.empty(N)
+    inj = 1.0 / np.sqrt(N)
+    for t in range(B):
+        s = 0.0
+        o0 = 0.0
+        o1 = 0.0
+        for k in range(N):
+            v = buf[k, (pos - delays[k]) % size]
+            o0 += cl[k] * v
+            o1 += cr[k] * v
+            zz = b0[k] * v + p[k] * z[k]
+            if abs(zz) < 1e-25:
+                zz = 0.0
+            z[k] = zz
+            y[k] = zz
+            s += zz
+        s *= h
+        for k in range(N):
+            buf[k, pos] = y[k] - s + x[t] * inj
+        pos = (pos + 1) % size
+        out[0, t] = o0 * norm
+        out[1, t] = o1 * norm
+    return pos
+
+
+@njit(**_opts)
+def distance_gain_1(d, mode, d0, D, near_k):
+    """Scalar twin of renderer.distance_gain (mode 0 log, 1 linear, 2 none)."""
+    if d > D:
+        return 0.0
+    if mode == 0:
+        g = (1.0 / (max(d, d0) - d0 + 1.0) - 1.0 / (1.0 + D - d0)) / (1.0 - 1.0 / (1.0 + D - d0))
+    elif mode == 1:
+        g = min(1.0, max(0.0, (D - max(d, d0)) / (D - d0)))
+    else:
+        g = 1.0
+    if d < 1.0:
+        g *= 1.0 + (1.0 / max(d, 0.1) - 1.0) * near_k
+    return g
+
+
+@njit(**_opts)
+def image_taps(src, lo, hi, q, m, amp, lis, R, mode, d0, D, near_k, occ, bulk, c_sound, delay, gain, Y):
+    """Image sources of the box [lo, hi] for sources src (n, 3) as heard at lis: delay
+    (n, K) s, gain (n, K) (distance law x wall reflections x occ (n,)), and 2nd-order N3D SH (n, K, 9) of the
+    direction in the head frame (R: world -> head rotation). Sources more than 0.5 m outside the box get no
+    images (gain 0); those within that margin are clamped into it."""
+    n, K = delay.shape
+    s3, s15, s5h = np.sqrt(3.0), np.sqrt(15.0), np.sqrt(5.0) / 2
+    for i in range(n):
+        inside = True
+        for a in range(3):
+            if src[i, a] < lo[a] - 0.5 or src[i, a] > hi[a] + 0.5:
+                inside = False
+        for k in range(K):
+            if not inside:  # image sources of this box do not exist for a source outside it
+                gain[i, k] = 0.0
+                delay[i, k] = 0.0
+                for c in range(9):
+                    Y[i, k, c] = 0.0
+                continue
+            v = np.empty(3)
+            for a in range(3):
+                L = hi[a] - lo[a]
+                x = min(max(src[i, a] - lo[a], 0.0), L)
+                v[a] = (1 - 2 * q[k, a]) * x + 2 * m[k, a] * L + lo[a] - lis[a]
+            d = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+            g = distance_gain_1(d, mode, d0, D, near_k) * amp[k] * occ[i]
+            gain[i, k] = g if g >= 1e-4 else 0.0  # below -80 dB: left out
+            delay[i, k] = min(d, D) / c_sound + bulk
+            inv = 1.0 / max(d, 1e-9)
+            x = (R[0, 0] * v[0] + R[0, 1] * v[1] + R[0, 2] * v[2]) * inv
+            y = (R[1, 0] * v[0] + R[1, 1] * v[1] + R[1, 2] * v[2]) * inv
+            z = (R[2, 0] * v[0] + R[2, 1] * v[1] + R[2, 2] * v[2]) * inv
+            Y[i, k, 0] = 1.0
+            Y[i, k, 1] = s3 * y
+            Y[i, k, 2] = s3 * z
+            Y[i, k, 3] = s3 * x
+            Y[i, k, 4] = s15 * x * y
+            Y[i, k, 5] = s15 * y * z
+            Y[i, k, 6] = s5h * (3 * z * z - 1)
+            Y[i, k, 7] = s15 * x * z
+            Y[i, k, 8] = s15 / 2 * (x * x - y * y)
+
+
+@njit(**_opts)
+def limit(out, res, g, release):
+    """Safety limiter, one pass: non-finite samples -> 0; when the block's peak exceeds 0.99 the gain falls to
+    0.99 / peak within a quarter block (samples still above 1 are clipped), and recovers by ``release`` per
+    block; magnitudes under 1e-30 become exact zeros (no denormals downstream). out (E, B) float64 -> res float32.
+    Returns the gain at the block's end."""
+    E, B = out.shape
+    peak = 0.0
+    for e in range(E):
+        for t in range(B):
+            v = out[e, t]
+            if not np.isfinite(v):
+                out[e, t] = 0.0
+            elif abs(v) > peak:
+                peak = abs(v)
+    target = 0.99 / peak if peak > 0.99 else 1.0
+    goal = min(target, g + release)
+    q = max(1, B // 4)
+    for e in range(E):
+        for t in range(B):
+            gg = g + (goal - g) * min(1.0, (t + 1) / q)
+            v = out[e, t] * gg
+            if v > 1.0:
+                v = 1.0
+            elif v < -1.0:
+                v = -1.0
+            elif abs(v) < 1e-30:
+                v = 0.0
+            res[e, t] = v
+    return goal
+
+
+@njit(**_opts)
+def direct_geometry(pos, lis, R, fwd, alpha, sharp, occ, air, mode, d0, D, near_k, c_sound,
+                    dirs, dist, gain, amp, delay):
+    """Per source: unit direction in the head frame (R: world -> head), distance, gain (distance law x
+    directivity |(1 - a) + a cos|^sharpness), per-band amplitude (air absorption x occlusion, float32) and
+    propagation delay (s)."""
+    n = pos.shape[0]
+    for i in range(n):
+        vx, vy, vz = pos[i, 0] - lis[0], pos[i, 1] - lis[1], pos[i, 2] - lis[2]
+        d = np.sqrt(vx * vx + vy * vy + vz * vz)
+        dist[i] = d
+        if d > 1e-6:
+            inv = 1.0 / d
+            dirs[i, 0] = (R[0, 0] * vx + R[0, 1] * vy + R[0, 2] * vz) * inv
+            dirs[i, 1] = (R[1, 0] * vx + R[1, 1] * vy + R[1, 2] * vz) * inv
+            dirs[i, 2] = (R[2, 0] * vx + R[2, 1] * vy + R[2, 2] * vz) * inv
+            cos_t = -(fwd[i, 0] * vx + fwd[i, 1] * vy + fwd[i, 2] * vz) * inv
+        else:
+            dirs[i, 0], dirs[i, 1], dirs[i, 2] = 1.0, 0.0, 0.0
+            cos_t = 1.0
+        g = distance_gain_1(d, mode, d0, D, near_k)
+        if alpha[i] > 0:
+            g *= abs((1 - alpha[i]) + alpha[i] * cos_t) ** sharp[i]
+        gain[i] = g
+        dm = min(d, D)
+        for b in range(air.shape[0]):
+            amp[i, b] = np.float32(np.exp(-0.5 * air[b] * dm) * occ[i, b])
+        delay[i] = dm / c_sound
+
+
+@njit(**_opts)
+def segment_motion(pos, lis, seg, out):
+    """How far (max-norm) each source->listener segment's ends moved since seg (n, 6) was cast (inf if never)."""
+    for i in range(pos.shape[0]):
+        m = 0.0
+        for a in range(3):
+            m = max(m, abs(pos[i, a] - seg[i, a]), abs(lis[a] - seg[i, 3 + a]))
+        out[i] = m if m == m else np.inf
+
+
+@njit(**_fast)
+def accumulate_sh(A, filters, acc):
+    """acc[e, f] = sum_c A[c, f] filters[c, e, f] (ambisonic channels -> ears)."""
+    C, E, F = filters.shape
+    acc[:] = 0
+    for c in range(C):
+        for e in range(E):
+            for f in range(F):
+                acc[e, f] += A[c, f] * filters[c, e, f]
+
+
+@njit(**_opts)
+def late_send(ring, w0, dist, occ, rt_low, p_send, fresh, out):
+    """Mono send to the late reverb from this block's dry samples ring[:, w0:w0+B]: per source
+    10^(-0.174 r / T / 20) (Barron & Lee: the late level falls with distance) x sqrt(mid-band occlusion
+    transmission) (a source behind walls excites the coupled space), ramped from p_send, which is updated."""
+    B = len(out)
+    out[:] = 0.0
+    T = max(rt_low, 0.05)
+    for i in range(len(dist)):
+        o = 0.0
+        for b in range(4, 7):
+            o += occ[i, b]
+        s = 10.0 ** (-0.174 * dist[i] / T / 20.0) * np.sqrt(max(o / 3.0, 0.0))
+        s0 = s if fresh[i] else p_send[i]
+        p_send[i] = s
+        if s == 0.0 and s0 == 0.0:
+            continue
+        ds = (s - s0) / B
+        for t in range(B):
+            out[t] += ring[i, w0 + t] * np.float32(s0 + ds * (t + 1))
