@@ -30,6 +30,9 @@ test-all: setup
 
 bench: setup
 	.venv/bin/sonicverse bench rays
+	.venv/bin/sonicverse bench audio --sources 64
+	.venv/bin/sonicverse bench audio --sources 256
+	.venv/bin/sonicverse bench accuracy --plot docs/accuracy.png
 
 clean:
 	rm -rf out .pytest_cache

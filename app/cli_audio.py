@@ -43,7 +43,7 @@ def load_sound(name: str, sample_rate: int) -> tuple[np.ndarray, int]:
 def cmd_render(a) -> int:
     import soundfile as sf
 
-    from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions
+    from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions, enclosed_fraction
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
     from sonicverse_core.scene.spec import load_scene
 
@@ -58,9 +58,8 @@ def cmd_render(a) -> int:
     probes = None
     if cfg.late_reverb:
         positions = default_probe_positions(scene)
-        probes = bake(scene, positions, BakeConfig(rays=a.rays), progress=not a.json)
-        if not any(p.enclosed > 0.5 for p in probes):
-            probes = None  # an open scene: no reverb to render
+        if np.any(enclosed_fraction(scene, positions) > 0.5):  # an open scene needs no probes and no bake
+            probes = bake(scene, positions, BakeConfig(rays=a.rays), progress=not a.json)
     r = AcousticRenderer(scene, cfg, probes=probes)
     r.add_source(sig, src, loop=True, sample_rate=sr)
     r.add_listener(lis[:3], lis[3] if len(lis) == 4 else 0.0)
@@ -105,7 +104,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     r.add_argument("--sample-rate", type=int, default=48000)
     r.add_argument("--block", type=int, default=256)
     r.add_argument("--output", default="binaural", choices=["binaural", "stereo", "mono"])
-    r.add_argument("--rays", type=int, default=4000, help="rays per reverb probe")
+    r.add_argument("--rays", type=int, default=2000, help="rays per reverb probe")
     r.add_argument("--no-occlusion", action="store_true")
     r.add_argument("--no-reverb", action="store_true")
     r.add_argument("--json", action="store_true", help="print one JSON object")
@@ -115,8 +114,47 @@ def add_audio_commands(sub, bench_sub) -> None:
     b.add_argument("spec", help="scene spec")
     b.add_argument("--probes", type=int, default=None, help="number of probes spread over the floor "
                    "(default: one per room)")
-    b.add_argument("--rays", type=int, default=4000)
+    b.add_argument("--rays", type=int, default=2000)
     b.add_argument("--at", action="append", help="X,Y,Z of a probe (repeatable)")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.set_defaults(func=cmd_bake)
+
+    ba = bench_sub.add_parser("audio", help="per-block cost of the full audio pipeline vs naive convolution",
+                              description="Per-block cost of the full pipeline (HRTF, occlusion, early reflections, "
+                              "late reverb) with a walking, turning listener, as a fraction of real time, and a "
+                              "naive per-source scipy convolution measured in the same run.")
+    ba.add_argument("--sources", type=int, default=64)
+    ba.add_argument("--seconds", type=float, default=8.0, help="audio rendered (default: %(default)s)")
+    ba.add_argument("--scene", default="builtin:apartment")
+    ba.add_argument("--sample-rate", type=int, default=48000)
+    ba.add_argument("--block", type=int, default=256)
+    ba.add_argument("--json", action="store_true", help="(always JSON)")
+    ba.set_defaults(func=cmd_bench_audio)
+    bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
+                              description="Sweep rays per probe, bounces, probes, HRTF interpolation and taps, early "
+                              "reflection order, reverb method and block size; print error vs a reference and run "
+                              "time per setting, with the Pareto front.")
+    bc.add_argument("--plot", help="write a PNG of error vs time per knob")
+    bc.add_argument("--reference-rays", type=int, default=1_000_000, help="rays of the reference bake (cached)")
+    bc.add_argument("--quick", action="store_true", help="fewer settings per knob")
+    bc.add_argument("--json", action="store_true", help="(always JSON)")
+    bc.set_defaults(func=cmd_bench_accuracy)
+
+
+def cmd_bench_audio(a) -> int:
+    from app.bench import bench_audio
+
+    if not (1 <= a.sources <= 4096) or not (0.1 <= a.seconds <= 3600):
+        raise ConfigError("--sources must be 1..4096 and --seconds 0.1..3600")
+    print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block)))
+    return 0
+
+
+def cmd_bench_accuracy(a) -> int:
+    from app.bench_accuracy import bench_accuracy
+
+    if a.reference_rays < 1000:
+        raise ConfigError("--reference-rays must be at least 1000")
+    print(json.dumps(bench_accuracy(a.reference_rays, a.quick, a.plot)))
+    return 0

@@ -56,9 +56,25 @@ def gather(ring, base, d_old, d_new, fs, g_old, g_new, out):
 
 @njit(**_opts)
 def _tap(row, base, d0, dd, g0, dg, out):
-    """One fractional-delay tap of a ring row into out (B,), delay d0 + dd (t + 1) samples, gain g0 + dg (t + 1)."""
+    """One fractional-delay tap of a ring row into out (B,), delay d0 + dd (t + 1) samples, gain g0 + dg (t + 1).
+    A delay that moves faster than half a sample per sample (Doppler factor 1.5: a teleport, not motion) is not
+    swept but crossfaded from the old to the new delay."""
     B = len(out)
     H = len(row)
+    if abs(dd) > 0.5:  # a jump (teleport): crossfade a tap at the old delay into one at the new delay
+        d1 = d0 + dd * B
+        for t in range(B):
+            r = (t + 1) / B
+            v = 0.0
+            for dk, wk in ((d0, 1.0 - r), (d1, r)):
+                pos = base + t - dk
+                j = int(np.floor(pos))
+                fr = pos - j
+                j %= H
+                j1 = j + 1 if j + 1 < H else 0
+                v += (row[j] + (row[j1] - row[j]) * fr) * wk
+            out[t] = v * (g0 + dg * (t + 1))
+        return
     start = (base - d0 - dd) % H  # read position of t = 0, in [0, H)
     step = 1.0 - dd
     end = start + step * (B - 1)

@@ -297,3 +297,17 @@ def eyring_rt60(dims, alpha_surfaces: dict, air: bool = True) -> np.ndarray:
         return 0.161 * V / (-S * np.log(np.maximum(1 - mean_alpha, 1e-12)) + 4 * m * V)
 
 
+
+
+def enclosed_fraction(scene, positions, rays: int = 128, caster=None) -> np.ndarray:
+    """Fraction of rays from each position that hit the static structure: near 0 in an open or anechoic scene,
+    which needs no probes and no bake."""
+    from sonicverse_core.geometry.raycast import SceneRayCaster
+
+    caster = caster or SceneRayCaster(scene)
+    d = _uniform_dirs(np.random.default_rng(0), rays)
+    out = []
+    for p in np.atleast_2d(positions):
+        h = caster.first_hit(np.tile(p, (rays, 1)), d, 1000.0, include_dynamic=False)
+        out.append(float(np.mean(h.hit)))
+    return np.array(out)

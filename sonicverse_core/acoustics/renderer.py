@@ -669,7 +669,7 @@ class AcousticRenderer:
             w /= w.sum()
             rt = w @ self._probe_rt
             vol = float(w @ self._probe_vol)
-            lo, hi = float(np.mean(rt[2:5])), float(np.mean(rt[7:9]))
+            lo, hi = float(np.mean(rt[3:6])), float(rt[7])  # 250 Hz-1 kHz and 4 kHz: the FDN's two fit points
             # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
             level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
             st["late_key"], st["late_params"] = lis.position.copy(), (w, lo, hi, level)

@@ -28,14 +28,29 @@ class FDNReverb:
         self.zi = np.zeros(n)
         self.set_rt60(rt60_low, rt60_high)
 
-    def set_rt60(self, rt_low: float, rt_high: float) -> None:
+    def set_rt60(self, rt_low: float, rt_high: float, f_low: float = 500.0, f_high: float = 4000.0) -> None:
+        """Decay times at two frequencies: each line's one-pole attenuation b0 / (1 - p z^-1) is fitted to give
+        exactly RT60 rt_low at f_low and rt_high at f_high (solving |H|^2 at both for p), with |H| kept below the
+        gain of a 60 s decay everywhere, so the network stays stable for any input."""
         rt_low = float(np.clip(rt_low, 0.05, 60.0))
         rt_high = float(np.clip(rt_high, 0.05, 60.0))
         self.rt60 = (rt_low, rt_high)
-        g0 = 10 ** (-3.0 * self.delays / (rt_low * self.fs))
-        gn = 10 ** (-3.0 * self.delays / (rt_high * self.fs))
-        self.p = (g0 - gn) / (g0 + gn)  # in (-1, 1)
-        self.b0 = g0 * (1 - self.p)
+        g1 = 10 ** (-3.0 * self.delays / (rt_low * self.fs))
+        g2 = 10 ** (-3.0 * self.delays / (rt_high * self.fs))
+        c1 = np.cos(2 * np.pi * min(f_low, 0.45 * self.fs) / self.fs)
+        c2 = np.cos(2 * np.pi * min(f_high, 0.49 * self.fs) / self.fs)
+        r = (g1 / g2) ** 2  # |H(w1)|^2 / |H(w2)|^2 = (1 - 2 p c2 + p^2) / (1 - 2 p c1 + p^2)
+        a, b = r - 1, 2 * (c2 - r * c1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            disc = np.sqrt(np.maximum(b * b - 4 * a * a, 0.0))
+            roots = np.stack([(-b + disc) / (2 * a), (-b - disc) / (2 * a)])
+        p = np.where(np.abs(a) < 1e-12, 0.0, np.where(np.abs(roots[0]) < 1, roots[0], roots[1]))
+        p = np.clip(np.nan_to_num(p), -0.99, 0.99)
+        b0 = g1 * np.sqrt(1 - 2 * p * c1 + p * p)
+        gmax = 10 ** (-3.0 * self.delays / (60.0 * self.fs))
+        peak = b0 / (1 - np.abs(p))  # the largest gain of the one-pole (at DC or Nyquist)
+        self.b0 = np.where(peak > gmax, b0 * gmax / peak, b0)
+        self.p = p
         m = float(np.mean(self.delays))
         # unit output energy for a unit impulse: each of the n lines carries ~ T fs / (13.8 m) of the injected energy
         # over its decay and the output mix sums the lines with weights 1/n

@@ -1,0 +1,300 @@
+"""`sonicverse bench accuracy`: every knob that trades accuracy for speed, error against a reference vs run time.
+
+Knobs and references:
+* rays per probe, bounces: per-band RT60 of a diffuse shoebox vs Eyring (bands with absorption <= 0.15, where
+  Eyring holds), and vs a bake with ``reference_rays`` in the apartment's living room; time per probe.
+* probes per scene: RT60 interpolated at random listener points vs a probe baked at that very point; bake time.
+* HRTF interpolation and filter length: leave-one-out over measured KEMAR directions (interpolate a held-out
+  direction from the others, log-spectral distance 200 Hz-16 kHz to the measurement); time per 64 lookups.
+* early reflections: echogram (1 ms energy bins, first 60 ms) of the engine's direct + image sources vs
+  pyroomacoustics' image-source RIR of the same shoebox; render time per block.
+* reverb method (FDN vs partitioned convolution): per-band RT60 measured on the rendered tail vs the probe's;
+  time per block.
+* block size: a source moving at 2 m/s rendered at each block size vs block 16 (relative RMS difference); time
+  per second of audio.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def _timed(fn, reps=1):
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        out = fn()
+    return out, (time.perf_counter() - t0) / reps
+
+
+def _pareto(points):
+    """Indices of the non-dominated (error, time) points."""
+    keep = []
+    for i, (e, t) in enumerate(points):
+        if not any((e2 <= e and t2 <= t) and (e2 < e or t2 < t) for j, (e2, t2) in enumerate(points) if j != i):
+            keep.append(i)
+    return keep
+
+
+def _rays_and_bounces(reference_rays: int, quick: bool):
+    from sonicverse_core.acoustics.probes import BakeConfig, bake, bake_probe, default_probe_positions, eyring_rt60
+    from sonicverse_core.geometry.raycast import SceneRayCaster
+    from sonicverse_core.scene.materials import get_material
+    from sonicverse_core.scene.spec import load_scene
+
+    box = load_scene("shoebox:6x4x3?material=BrickBare")
+    ey = eyring_rt60((6, 4, 3), box.metadata["surface_materials"])
+    diffuse = np.array(get_material("BrickBare").absorption) <= 0.15
+    cbox = SceneRayCaster(box)
+    apt = load_scene("builtin:apartment")
+    living = next(r for r in apt.rooms if r.type == "living room")
+    pos = default_probe_positions(apt)
+    at = pos[np.argmin(np.linalg.norm(pos[:, :2] - living.footprint.mean(0), axis=1))]
+    ref = bake(apt, at[None], BakeConfig(rays=reference_rays), progress=False)[0].rt60
+    capt = SceneRayCaster(apt)
+    rows = []
+    for rays in ((500, 2000) if quick else (250, 500, 1000, 2000, 4000, 8000)):
+        p, t = _timed(lambda: bake_probe(cbox, [2.3, 1.6, 1.4], BakeConfig(rays=rays, max_time=8.0)))
+        q, t2 = _timed(lambda: bake_probe(capt, at, BakeConfig(rays=rays)))
+        rows.append({"setting": rays, "error": float(np.mean(np.abs(p.rt60[diffuse] / ey[diffuse] - 1))),
+                     "error_vs_reference_bake": float(np.max(np.abs(q.rt60[2:] / ref[2:] - 1))),
+                     "time_s": t2, "time_shoebox_s": t})
+    bounce_rows = []
+    for nb in ((20, 400) if quick else (10, 20, 50, 100, 400)):
+        p, t = _timed(lambda: bake_probe(cbox, [2.3, 1.6, 1.4], BakeConfig(max_bounces=nb, max_time=8.0)))
+        bounce_rows.append({"setting": nb, "error": float(np.mean(np.abs(p.rt60[diffuse] / ey[diffuse] - 1))),
+                            "time_s": t})
+    return ({"knob": "rays_per_probe", "error_metric": "mean |RT60/Eyring - 1| (shoebox 6x4x3 BrickBare, bands "
+             "alpha <= 0.15); error_vs_reference_bake: max over 125 Hz-8 kHz of |RT60/RT60_ref - 1| in the "
+             f"apartment's living room, reference {reference_rays} rays; time: one apartment probe",
+             "rows": rows},
+            {"knob": "max_bounces", "error_metric": "mean |RT60/Eyring - 1| (same shoebox)", "rows": bounce_rows})
+
+
+def _probes(quick: bool):
+    from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions
+    from sonicverse_core.geometry.navgrid import NavGrid
+    from sonicverse_core.scene.spec import load_scene
+
+    scene = load_scene("builtin:apartment")
+    rng = np.random.default_rng(1)
+    pts = NavGrid(scene).sample(rng, 6 if quick else 12)
+    pts = np.c_[pts[:, :2], np.full(len(pts), 1.5)]
+    truth = np.array([p.rt60 for p in bake(scene, pts, BakeConfig(), progress=False)])
+    rows = []
+    for n in ((1, 4) if quick else (1, 2, 4, 8, 16)):
+        P = default_probe_positions(scene, n, rng=np.random.default_rng(0))
+        t0 = time.perf_counter()
+        probes = bake(scene, P, BakeConfig(), cache=False)
+        t = time.perf_counter() - t0
+        X = np.array([p.position for p in probes])
+        R = np.array([p.rt60 for p in probes])
+        w = 1 / np.maximum(np.linalg.norm(pts[:, None] - X[None], axis=2), 0.1) ** 2
+        est = (w / w.sum(1, keepdims=True)) @ R
+        rows.append({"setting": n, "error": float(np.mean(np.abs(est[:, 2:] / truth[:, 2:] - 1))), "time_s": t})
+    return {"knob": "probes_per_scene", "error_metric": "mean |RT60_interpolated / RT60_baked_there - 1| over "
+            "random listener points (125 Hz-8 kHz)", "rows": rows}
+
+
+def _hrtf(quick: bool):
+    from assets_manifest.hrtf import HrirSet, kemar
+    from sonicverse_core.acoustics.hrtf import HrtfInterpolator
+
+    full = kemar()
+    rng = np.random.default_rng(0)
+    # held-out directions away from the hull's open bottom
+    el = np.degrees(np.arcsin(full.directions[:, 2]))
+    cand = np.flatnonzero((el > -30) & (el < 70))
+    held = rng.choice(cand, 12 if quick else 40, replace=False)
+    keep = np.setdiff1d(np.arange(len(full.directions)), held)
+    sub = HrirSet("loo", full.sample_rate, full.directions[keep], full.hrirs[keep])
+    sr = 48000
+    ref = HrtfInterpolator(full, sr, taps=512)
+    nfft = 1024
+    f = np.fft.rfftfreq(nfft, 1 / sr)
+    band = (f > 200) & (f < 16000)
+    rows = []
+    dirs = full.directions[held]
+    truth = np.abs(np.fft.rfft(ref.filters[held], nfft, axis=-1))[..., band]
+    for method in ("nearest", "barycentric"):
+        for taps in ((64, 192) if quick else (32, 64, 128, 192, 256)):
+            h = HrtfInterpolator(sub, sr, taps=taps)
+            h.lookup_spectra(dirs, nfft, method)  # warm-up: grid table and spectra are built once
+            (spec, _), t = _timed(lambda: h.lookup_spectra(np.tile(dirs, (2, 1))[:64], nfft, method), reps=50)
+            mag = np.abs(spec[: len(dirs)])[..., band]
+            lsd = np.sqrt(np.mean((20 * np.log10((mag + 1e-9) / (truth + 1e-9))) ** 2, axis=-1))
+            rows.append({"setting": f"{method}/{taps}", "error": float(np.mean(lsd)), "time_s": t})
+    return {"knob": "hrtf_interpolation/taps", "error_metric": "log-spectral distance (dB, 200 Hz-16 kHz) of a "
+            "held-out measured KEMAR direction interpolated from the others; time: 64 lookups", "rows": rows}
+
+
+def _render_ir(cfg, probes, src, lis, seconds):
+    from sonicverse_core.acoustics.renderer import AcousticRenderer
+
+    r = AcousticRenderer(None, cfg, probes=probes)
+    imp = np.zeros(int(seconds * cfg.sample_rate), np.float32)
+    imp[0] = 1.0
+    r.add_source(imp, src, loop=False)
+    r.add_listener(lis)
+    t0 = time.perf_counter()
+    y = r.render(seconds)[0]
+    return y, (time.perf_counter() - t0) / int(np.ceil(seconds * cfg.sample_rate / cfg.block))
+
+
+def _shoebox_probe(dims, material):
+    from sonicverse_core.acoustics.probes import Probe, eyring_rt60
+    from sonicverse_core.scene.spec import load_scene
+
+    s = load_scene(f"shoebox:{dims[0]}x{dims[1]}x{dims[2]}?material={material}")
+    ey = eyring_rt60(dims, s.metadata["surface_materials"])
+    return Probe(np.array(dims) / 2, ey, ey, np.zeros(3), np.array(dims, float), (material,) * 6, 1.0)
+
+
+def _early(quick: bool):
+    import pyroomacoustics as pra
+
+    from sonicverse_core.acoustics.early import wall_reflectance
+    from sonicverse_core.acoustics.renderer import RenderConfig
+
+    dims, mat = (6.0, 4.0, 3.0), "PlasterRough"
+    probe = _shoebox_probe(dims, mat)
+    src, lis = np.array([1.7, 1.3, 1.2]), np.array([4.1, 2.6, 1.6])
+    fs = 48000
+    refl = wall_reflectance(probe.box_materials)[0]
+    rows = []
+    for order in (1, 2):
+        room = pra.ShoeBox(list(dims), fs=fs, materials=pra.Material(float(1 - refl ** 2)), max_order=order,
+                           air_absorption=False)
+        room.add_source(src.tolist())
+        room.add_microphone(lis.tolist())
+        room.compute_rir()
+        h_ref = np.asarray(room.rir[0][0])  # pyroomacoustics scales image amplitudes as 1 / r, as we do
+        delay = pra.constants.get("frac_delay_length") // 2  # its fractional-delay filters' latency
+        h_ref = h_ref[delay:]
+        cfg = RenderConfig(output="mono", occlusion=False, late_reverb=False, er_order=order, near_field_gain=0,
+                           max_distance=5000)
+        y, t = _render_ir(cfg, [probe], src, lis, 0.1)
+        h = y[0].astype(float) * np.sqrt(2)  # the mono output's 1/sqrt(2) per ear
+        n = int(0.06 * fs)
+        bins = 48
+        # compared below 4 kHz: both use interpolating fractional delays that differ near Nyquist
+        from scipy.signal import butter, sosfiltfilt
+
+        sos = butter(6, 4000, fs=fs, output="sos")
+        h = sosfiltfilt(sos, np.r_[h, np.zeros(n)][: 2 * n])
+        h_ref = sosfiltfilt(sos, np.r_[h_ref, np.zeros(2 * n)][: 2 * n])
+        e1 = np.add.reduceat(h[:n] ** 2, np.arange(0, n, bins))
+        e0 = np.add.reduceat(h_ref[:n] ** 2, np.arange(0, n, bins))
+        rows.append({"setting": f"order {order}", "error": float(np.sum(np.abs(e1 - e0)) / np.sum(e0)),
+                     "time_s": t})
+    return {"knob": "early_reflection_order", "error_metric": "echogram error sum|E - E_ref| / sum E_ref (1 ms "
+            "bins, 0-60 ms, both low-passed at 4 kHz) vs pyroomacoustics ShoeBox image sources of the same order and wall reflection; "
+            "time: per 256-frame block", "rows": rows}
+
+
+def _band_rt60(y, fs):
+    """RT60 (s) per octave band 250 Hz-4 kHz of an impulse response by Schroeder integration (T20)."""
+    from scipy.signal import butter, sosfiltfilt
+
+    out = []
+    for fc in (250, 500, 1000, 2000, 4000):
+        sos = butter(3, [fc / np.sqrt(2), fc * np.sqrt(2)], "bandpass", fs=fs, output="sos")
+        e = sosfiltfilt(sos, y) ** 2
+        sch = np.cumsum(e[::-1])[::-1]
+        db = 10 * np.log10(np.maximum(sch / sch[0], 1e-30))
+        t = np.arange(len(y)) / fs
+        m = (db <= -5) & (db >= -25)
+        out.append(-60 / np.polyfit(t[m], db[m], 1)[0])
+    return np.array(out)
+
+
+def _reverb(quick: bool):
+    from sonicverse_core.acoustics.renderer import RenderConfig
+
+    probe = _shoebox_probe((8.0, 6.0, 3.0), "PlasterRough")
+    target = probe.rt60[3:8]
+    rows = []
+    for method in ("fdn", "convolution"):
+        cfg = RenderConfig(output="stereo", occlusion=False, early_reflections=False, reverb=method)
+        y, t = _render_ir(cfg, [probe], [2.0, 2.0, 1.5], [5.0, 3.5, 1.5], 2.5)
+        rt = _band_rt60(y[0].astype(float)[int(0.03 * 48000):], 48000)
+        rows.append({"setting": method, "error": float(np.mean(np.abs(rt / target - 1))), "time_s": t,
+                     "rt60_measured": np.round(rt, 3).tolist(), "rt60_target": np.round(target, 3).tolist()})
+    return {"knob": "reverb_method", "error_metric": "mean |RT60_rendered / RT60_probe - 1| over 250 Hz-4 kHz "
+            "octaves (Schroeder T20 of the rendered impulse response); time: per 256-frame block", "rows": rows}
+
+
+def _blocks(quick: bool):
+    from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+
+    fs, seconds = 48000, 1.0
+    x = np.random.default_rng(0).normal(size=int(fs * 1.5)).astype(np.float32) * 0.1
+
+    def run(block):
+        r = AcousticRenderer(None, RenderConfig(block=block, occlusion=False, late_reverb=False))
+        s = r.add_source(x, (2.0, -3.0, 0.0), loop=False)
+        r.add_listener((0, 0, 0))
+        out, n = [], int(np.ceil(seconds * fs / block))
+        t0 = time.perf_counter()
+        for i in range(n):
+            s.position = (2.0, -3.0 + 2.0 * (i + 1) * block / fs, 0.0)  # 2 m/s past the listener
+            out.append(r.render_block()[0])
+        return np.concatenate(out, 1)[:, : int(seconds * fs)], (time.perf_counter() - t0) / seconds
+
+    ref, _ = run(16)
+    rows = []
+    for b in ((64, 256, 1024) if quick else (32, 64, 128, 256, 512, 1024, 2048)):
+        y, t = run(b)
+        rows.append({"setting": b, "error": float(np.sqrt(np.mean((y - ref) ** 2) / np.mean(ref ** 2))),
+                     "time_s": t})
+    return {"knob": "block_size", "error_metric": "relative RMS difference to block 16 of a source passing at "
+            "2 m/s (pose updated once per block); time: per second of audio", "rows": rows}
+
+
+def bench_accuracy(reference_rays: int = 1_000_000, quick: bool = False, plot: str | None = None) -> dict:
+    knobs = []
+    knobs.extend(_rays_and_bounces(reference_rays, quick))
+    knobs.append(_probes(quick))
+    knobs.append(_hrtf(quick))
+    knobs.append(_early(quick))
+    knobs.append(_reverb(quick))
+    knobs.append(_blocks(quick))
+    for k in knobs:
+        front = _pareto([(r["error"], r["time_s"]) for r in k["rows"]])
+        for i, r in enumerate(k["rows"]):
+            r["pareto"] = i in front
+            r["error"] = round(r["error"], 5)
+            r["time_s"] = round(r["time_s"], 6)
+    if plot:
+        _plot(knobs, plot)
+    return {"bench": "accuracy", "knobs": knobs, "plot": plot}
+
+
+def _plot(knobs, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = 4
+    rows = int(np.ceil(len(knobs) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows))
+    for ax, k in zip(axes.ravel(), knobs):
+        e = np.array([r["error"] for r in k["rows"]])
+        t = np.array([r["time_s"] for r in k["rows"]])
+        p = np.array([r["pareto"] for r in k["rows"]])
+        ax.scatter(t, e, c=np.where(p, "C3", "C0"), zorder=3)
+        order = np.argsort(t[p])
+        ax.plot(t[p][order], e[p][order], "C3--", lw=1, label="Pareto front")
+        for r, ti, ei in zip(k["rows"], t, e):
+            ax.annotate(str(r["setting"]), (ti, ei), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_title(k["knob"], fontsize=9)
+        ax.set_xlabel("time (s)", fontsize=8)
+        ax.set_ylabel("error", fontsize=8)
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[len(knobs):]:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,255 @@
+"""The renderer's parts and its stability: compiled kernels vs NumPy twins, early reflections vs image-source
+theory, occlusion updates, leave-out rules, multiple listeners, extremes, long runs, CLI front end."""
+import json
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from sonicverse_core.acoustics.probes import SPEED_OF_SOUND, Probe
+from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+from sonicverse_core.scene.spec import load_scene
+
+FS = 48000
+
+
+def _probe(dims, rt=0.5, material="PlasterRough"):
+    dims = np.asarray(dims, float)
+    return Probe(dims / 2, np.full(9, rt), np.full(9, rt), np.zeros(3), dims, (material,) * 6, 1.0)
+
+
+def _max_step(y):
+    return float(np.max(np.abs(np.diff(y.astype(np.float64), axis=1))))
+
+
+def test_gather_kernel_matches_numpy():
+    from sonicverse_core.acoustics.kernels import gather
+
+    rng = np.random.default_rng(0)
+    H, B = 4096, 64
+    ring = rng.normal(size=(3, H)).astype(np.float32)
+    d_old = rng.uniform(0, 0.02, (3, 2))
+    d_new = d_old + rng.uniform(-2e-4, 2e-4, (3, 2))  # moving sources
+    d_new[2, 1] = 0.08  # a jump of thousands of samples within the block (a teleport)
+    g_old, g_new = rng.uniform(0, 1, (3, 2)), rng.uniform(0, 1, (3, 2))
+    out = np.empty((3, 2, B), np.float32)
+    base = -B  # the write position wrapped: reads wrap around the ring
+    gather(ring, base, d_old, d_new, float(FS), g_old, g_new, out)
+    t = np.arange(B)
+    r = (t + 1) / B
+    rows = np.arange(3)[:, None, None]
+
+    def tap(d):
+        pos = base + t - d * FS
+        i0 = np.floor(pos).astype(int)
+        fr = pos - i0
+        return ring[rows, i0 % H] * (1 - fr) + ring[rows, (i0 + 1) % H] * fr
+
+    swept = tap(d_old[..., None] + (d_new - d_old)[..., None] * r)  # motion: the delay sweeps (Doppler)
+    jump = tap(d_old[..., None]) * (1 - r) + tap(d_new[..., None]) * r  # a teleport: crossfade
+    teleport = (np.abs(d_new - d_old) * FS / B > 0.5)[..., None]
+    ref = np.where(teleport, jump, swept) * (g_old[..., None] + (g_new - g_old)[..., None] * r)
+    assert teleport.sum() >= 1 and (~teleport).sum() >= 4
+    np.testing.assert_allclose(out, ref, atol=2e-5)
+
+
+def test_barycentric_weights_reproduce_direction():
+    from assets_manifest.hrtf import kemar
+    from sonicverse_core.acoustics.hrtf import HrtfInterpolator
+
+    h = HrtfInterpolator(kemar(), FS, taps=64)
+    d = np.random.default_rng(1).normal(size=(2000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tri, w = h.fast_weights(d)
+    assert np.all(w >= 0) and np.allclose(w.sum(1), 1)
+    v = np.einsum("mk,mkj->mj", w, h.directions[tri])  # the interpolation point lies on the ray of d
+    cos = np.einsum("ij,ij->i", v / np.linalg.norm(v, axis=1, keepdims=True), d)
+    assert cos.min() > 1 - 1e-9
+    # a measured direction gets its own filter
+    tri, w = h.fast_weights(h.directions[:50])
+    picked = tri[np.arange(50), np.argmax(w, 1)]
+    np.testing.assert_array_equal(picked, np.arange(50))
+
+
+def test_early_reflection_arrival_times_match_image_sources():
+    dims = (6.0, 4.0, 3.0)
+    src, lis = np.array([1.7, 1.3, 1.2]), np.array([4.1, 2.6, 1.6])
+    r = AcousticRenderer(None, RenderConfig(output="mono", occlusion=False, late_reverb=False, near_field_gain=0),
+                         probes=[_probe(dims)])
+    imp = np.zeros(FS // 10, np.float32)
+    imp[0] = 1.0
+    r.add_source(imp, src, loop=False)
+    r.add_listener(lis)
+    assert "early_reflections" in r.subsystems
+    y = r.render(0.1)[0][0].astype(np.float64)
+    # image sources of the 6 walls (first order) + the direct path
+    images = [src]
+    for a in range(3):
+        for wall in (0.0, dims[a]):
+            im = src.copy()
+            im[a] = 2 * wall - src[a]
+            images.append(im)
+    delays = np.sort([np.linalg.norm(im - lis) / SPEED_OF_SOUND * FS for im in images])
+    energy = y ** 2
+    found = []
+    for d in delays:
+        win = slice(int(d) - 3, int(d) + 4)
+        k = int(d) - 3 + np.argmax(energy[win])
+        found.append(k)
+        # linear interpolation splits a tap over the two samples around the exact delay
+        assert abs(k - d) <= 1.0, (k, d)
+        g = 1 / (np.linalg.norm(images[0] - lis) if d == delays[0] else 1)
+        assert np.sum(energy[int(d) - 1: int(d) + 3]) > 0.3 * (min(g, 1) / (d / FS * SPEED_OF_SOUND)) ** 2 * 0.5
+    # nothing arrives before the direct sound (but the zero-phase air-absorption curve's pre-ringing, < -40 dB)
+    assert np.max(np.abs(y[: int(delays[0]) - 2])) < 1e-2 * np.max(np.abs(y))
+
+
+def test_occlusion_follows_a_closing_door_in_the_next_block():
+    s = load_scene("builtin:apartment?seed=0")
+    door = s.doors[0]
+    yaw = np.radians(door.closed_yaw)
+    along, normal = np.array([np.cos(yaw), np.sin(yaw)]), np.array([-np.sin(yaw), np.cos(yaw)])
+    centre = np.asarray(door.hinge, float)[:2] + along * door.width / 2  # the middle of the doorway
+    src = np.r_[centre + 1.2 * normal, 1.0]  # through the doorway, 1.2 m on either side
+    lis = np.r_[centre - 1.2 * normal, 1.0]
+    r = AcousticRenderer(s, RenderConfig(output="mono", late_reverb=False, early_reflections=False))
+    r.add_source(np.ones(FS, np.float32) * 0.1, src)
+    r.add_listener(lis)
+    s.set_door(door.name, 1.0)
+    r.render_block()
+    open_t = r._state[0]["occ_target"][0].copy()
+    s.set_door(door.name, 0.0)
+    r.render_block()  # the very next block sees the change
+    closed_t = r._state[0]["occ_target"][0].copy()
+    assert np.allclose(open_t, 1.0)  # open: a clear path
+    assert closed_t[-1] < 0.1 and np.all(np.diff(closed_t) <= 1e-12)  # closed: the leaf, more at high bands
+    y = r.render_block()[0]  # and the output follows, smoothed across blocks
+    assert np.all(np.isfinite(y))
+
+
+def test_leave_out_what_a_scene_does_not_need():
+    box = load_scene("shoebox:5x4x3")
+    r = AcousticRenderer(box, RenderConfig(output="stereo"), probes=[_probe((5, 4, 3))])
+    assert "occlusion" not in r.subsystems  # convex room: nothing can lie between two points inside
+    assert "hrtf" not in r.subsystems and r.hrtf is None
+    assert {"early_reflections", "late_reverb"} <= set(r.subsystems)
+    r = AcousticRenderer(box, RenderConfig(), probes=[])
+    assert "late_reverb" not in r.subsystems and "early_reflections" not in r.subsystems
+    apt = load_scene("builtin:apartment?seed=0")
+    r = AcousticRenderer(apt, RenderConfig(output="mono", late_reverb=False, early_reflections=False))
+    assert "occlusion" in r.subsystems
+    living = next(x for x in apt.rooms if x.type == "living room")
+    c = np.r_[living.footprint.mean(0), 1.2]
+    r.add_source(np.ones(FS, np.float32) * 0.1, c + [0.3, 0, 0])
+    r.add_listener(c)
+    r.render_block()
+    # a segment whose box meets no part's box casts no rays
+    assert r.stats["occlusion_skipped"] + r.stats["occlusion_rays"] == 1
+
+
+def test_two_listeners_hear_the_scene_from_their_own_poses():
+    r = AcousticRenderer(None, RenderConfig(occlusion=False, late_reverb=False))
+    r.add_source(np.random.default_rng(0).normal(size=FS).astype(np.float32) * 0.1, (0, 2, 0))
+    r.add_listener((0, 0, 0), 0.0)  # source on the left
+    r.add_listener((0, 4, 0), 0.0)  # source on the right
+    a, b = (y.astype(np.float64)[:, 4800:] for y in r.render(0.5))
+    assert np.mean(a[0] ** 2) > 2 * np.mean(a[1] ** 2)
+    assert np.mean(b[1] ** 2) > 2 * np.mean(b[0] ** 2)
+
+
+@pytest.mark.parametrize("dims,rt", [((0.3, 0.3, 0.3), 1e-4), ((300.0, 300.0, 300.0), 1e4),
+                                     ((0.3, 0.3, 0.3), 1e4), ((300.0, 300.0, 300.0), 1e-4)])
+def test_extreme_rooms_and_decays_stay_finite_and_bounded(dims, rt):
+    for reverb in ("fdn", "convolution"):
+        r = AcousticRenderer(None, RenderConfig(occlusion=False, reverb=reverb), probes=[_probe(dims, rt)])
+        r.add_source(np.ones(FS, np.float32), np.asarray(dims) * 0.3)
+        r.add_source(np.ones(FS, np.float32), np.asarray(dims) * 0.5)  # at the listener
+        r.add_listener(np.asarray(dims) * 0.5)
+        y = r.render(0.3)[0]
+        assert np.all(np.isfinite(y)) and np.max(np.abs(y)) <= 1.0
+
+
+def test_ten_thousand_teleports_no_click_above_threshold():
+    rng = np.random.default_rng(7)
+    r = AcousticRenderer(None, RenderConfig(block=64, occlusion=False), probes=[_probe((8, 6, 3), 0.8)])
+    t = np.arange(FS * 2) / FS
+    tone = (0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32)
+    s = r.add_source(tone, (2, 0, 1))
+    lis = r.add_listener((4, 3, 1.5))
+    prev = None
+    worst = 0.0
+    for _ in range(10_000):
+        s.position = rng.uniform([0.2, 0.2, 0.2], [7.8, 5.8, 2.8])
+        r.set_listener(lis, rng.uniform([0.2, 0.2, 0.2], [7.8, 5.8, 2.8]), rng.uniform(-360, 360))
+        y = r.render_block()[0]
+        assert np.all(np.isfinite(y)) and np.max(np.abs(y)) <= 1.0
+        if prev is not None:
+            worst = max(worst, _max_step(np.concatenate([prev[:, -1:], y], 1)))
+        prev = y
+    # the tone itself moves by at most 0.3 * 2 pi 220 / 48000 = 0.009 per sample at 1 m; gains, delays and filters
+    # ramp across blocks, so no step comes near a click (stated threshold: 0.25 full scale per sample)
+    assert worst < 0.25, worst
+
+
+def test_long_run_no_memory_growth_no_denormals():
+    rng = np.random.default_rng(3)
+    r = AcousticRenderer(load_scene("shoebox:6x5x3"), RenderConfig(), probes=[_probe((6, 5, 3), 1.2)])
+    burst = np.zeros(FS, np.float32)
+    burst[:2000] = rng.normal(size=2000).astype(np.float32) * 0.3  # a burst, then a decaying tail into silence
+    r.add_source(burst, (1.5, 1.5, 1.2), loop=False)
+    r.add_listener((4, 3, 1.5))
+    for _ in range(200):
+        r.render_block()
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    for _ in range(60 * FS // 256):  # one minute of audio (the hour-long soak is the slow variant)
+        y = r.render_block()[0]
+    after = tracemalloc.get_traced_memory()[0]
+    tracemalloc.stop()
+    assert after - before < 200_000, after - before
+    assert np.all(y == 0) or np.min(np.abs(y[y != 0])) >= 1e-30
+    tiny = np.finfo(np.float64).tiny
+    for arr in (r._state[0]["fdn"].buf, r._state[0]["fdn"].zi):
+        nz = np.abs(arr[arr != 0])
+        assert len(nz) == 0 or nz.min() >= tiny  # no subnormal numbers in the reverb's state
+
+
+@pytest.mark.slow
+def test_an_hour_of_audio_without_drift():
+    r = AcousticRenderer(load_scene("shoebox:6x5x3"), RenderConfig(), probes=[_probe((6, 5, 3), 1.0)])
+    t = np.arange(FS) / FS
+    r.add_source((0.2 * np.sin(2 * np.pi * 440 * t)).astype(np.float32), (1.5, 1.5, 1.2))
+    r.add_listener((4, 3, 1.5))
+    levels = []
+    for k in range(3600 * FS // 256):
+        y = r.render_block()[0]
+        if k % (60 * FS // 256) == 0:
+            levels.append(float(np.sqrt(np.mean(y.astype(np.float64) ** 2))))
+        assert np.max(np.abs(y)) <= 1.0
+    levels = np.array(levels[1:])
+    assert np.all(np.isfinite(levels)) and levels.max() / levels.min() < 1.05  # steady state, no drift
+
+
+def test_cli_render_and_bake_json(cli, tmp_path):
+    out = tmp_path / "r.wav"
+    res = cli("render", "shoebox:6x4x3", "--sound", "sofa", "--source", "1.5,1.5,1.2", "--listener", "4,2.5,1.5,90",
+              "--seconds", "0.5", "--out", str(out), "--json")
+    assert res.returncode == 0, res.stderr
+    d = json.loads(res.stdout)
+    assert out.is_file() and d["sample_rate"] == 48000 and len(d["peak"]) == 2 and len(d["rms"]) == 2
+    assert {"direct", "hrtf", "early_reflections", "late_reverb"} <= set(d["subsystems"])
+    assert "occlusion" not in d["subsystems"]
+    res = cli("bake", "shoebox:6x4x3", "--at", "3,2,1.5", "--rays", "500", "--json")
+    assert res.returncode == 0, res.stderr
+    probes = json.loads(res.stdout)["probes"]
+    assert len(probes) == 1 and len(probes[0]["rt60"]) == 9
+    res = cli("render", "shoebox:6x4x3", "--sound", "sofa", "--source", "nan,1,1", "--listener", "1,1,1",
+              "--out", str(out))
+    assert res.returncode == 2 and res.stderr.count("\n") == 1
+
+
+def test_cli_bench_audio_reports_realtime_fraction(cli):
+    res = cli("bench", "audio", "--sources", "4", "--seconds", "0.3", "--scene", "shoebox:6x4x3")
+    assert res.returncode == 0, res.stderr
+    d = json.loads(res.stdout)
+    assert set(d["realtime_fraction"]) >= {"median", "p99"} and d["reference"]["realtime_fraction"]["median"] > 0
