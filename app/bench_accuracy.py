@@ -173,6 +173,7 @@ def _early(quick: bool):
         h_ref = h_ref[delay:]
         cfg = RenderConfig(output="mono", occlusion=False, late_reverb=False, er_order=order, near_field_gain=0,
                            max_distance=5000)
+        _render_ir(cfg, [probe], src, lis, 0.02)  # warm-up (compiled kernels)
         y, t = _render_ir(cfg, [probe], src, lis, 0.1)
         h = y[0].astype(float) * np.sqrt(2)  # the mono output's 1/sqrt(2) per ear
         n = int(0.06 * fs)
