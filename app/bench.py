@@ -66,7 +66,7 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg):
         r.add_source(soundbank.sound(cat, i % 3), np.r_[pts[i, :2], 1.0], sample_rate=soundbank.SAMPLE_RATE,
                      gain=0.1)
     r.add_listener(np.r_[pts[-1, :2], 1.5], 0.0)
-    return scene, r, grid, rng
+    return r
 
 
 def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:apartment", seed: int = 0,
@@ -80,7 +80,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     from sonicverse_core.acoustics.renderer import RenderConfig
 
     cfg = RenderConfig(sample_rate=sample_rate, block=block)
-    scene, r, grid, rng = _audio_scene(spec, n_sources, seed, cfg)
+    r = _audio_scene(spec, n_sources, seed, cfg)
     lis = r.listeners[0]
     start = lis.position.copy()
     block_s = block / sample_rate

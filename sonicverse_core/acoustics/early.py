@@ -3,7 +3,7 @@
 For a box [lo, hi] and a source inside it, the image positions along each axis are x' = (1 - 2q) x + 2 m L
 (box-local coordinates, q in {0, 1}, m integer); such an image has reflected |m - q| times off the low wall and
 |m| times off the high wall of that axis. All images up to a reflection ``order`` are enumerated once per order
-(the lattice) and placed for every source in one array operation. A wall reflects sqrt(1 - alpha) of the
+(the lattice); ``kernels.image_taps`` places them for every source each block. A wall reflects sqrt(1 - alpha) of the
 amplitude, alpha its material's mean absorption over 500 Hz - 2 kHz; an open side (no surface within reach of the
 probe) reflects nothing.
 """
@@ -49,13 +49,8 @@ def wall_reflectance(materials) -> np.ndarray:
     return np.array(r)
 
 
-def image_sources(src: np.ndarray, lo: np.ndarray, hi: np.ndarray, reflect: np.ndarray, order: int):
-    """Sources (n, 3) in the box -> image positions (n, K, 3) and amplitude factors (K,) (wall reflections only).
-    Sources outside the box are clamped into it."""
-    q, m, c = lattice(order)
-    L = hi - lo
-    local = np.clip(src - lo, 0.0, L)
-    pos = (1 - 2 * q)[None] * local[:, None, :] + 2 * m[None] * L + lo
-    with np.errstate(divide="ignore"):
-        amp = np.prod(np.where(c > 0, reflect[None, :] ** c, 1.0), axis=1)
-    return pos, amp
+def image_amplitudes(reflect: np.ndarray, order: int) -> np.ndarray:
+    """Amplitude factor (K,) of every image of the lattice: the product of its walls' reflection factors
+    (the image positions themselves are placed per block by ``kernels.image_taps``)."""
+    c = lattice(order)[2]
+    return np.prod(np.where(c > 0, reflect[None, :] ** c, 1.0), axis=1)

@@ -49,10 +49,6 @@ class HrtfInterpolator:
         self._centroid = self.directions[self._tri].mean(1)
         self._centroid /= np.linalg.norm(self._centroid, axis=1, keepdims=True)
 
-    def weights(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For unit vectors (m, 3): vertex indices (m, 3) and barycentric weights (m, 3) summing to 1."""
-        return self.fast_weights(directions)
-
     def _exact_triangles(self, d: np.ndarray) -> np.ndarray:
         out = np.empty(len(d), np.int64)
         for i in range(0, len(d), 4096):
@@ -87,14 +83,18 @@ class HrtfInterpolator:
             self._grid_step = step
         return self._grid_tri, self._grid_step
 
-    def fast_weights(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """As :meth:`weights`, through the grid table and a compiled loop (directions near a cell's triangle edge
-        fall back to a search over the whole hull)."""
+    def weights(self, directions: np.ndarray, method: str = "barycentric") -> tuple[np.ndarray, np.ndarray]:
+        """For directions (m, 3): vertex indices (m, 3) and weights (m, 3) summing to 1. barycentric: the hull
+        triangle the direction passes through, found through the grid table by a compiled loop (falling back to
+        the whole hull); nearest: the closest measured direction with weight 1."""
         from sonicverse_core.acoustics.kernels import barycentric
 
         d = np.ascontiguousarray(np.atleast_2d(directions), dtype=np.float64)
         if not np.all(np.isfinite(d)):
             raise ConfigError("HRTF directions must be finite")
+        if method == "nearest":
+            i = np.argmax(d @ self.directions.T, axis=1)
+            return np.stack([i, i, i], 1), np.tile([1.0, 0.0, 0.0], (len(d), 1))
         grid, step = self._grid()
         return barycentric(d, grid, step, self._inv, self._tri)
 
@@ -109,12 +109,9 @@ class HrtfInterpolator:
         """Interpolated filter spectra (m, 2, nf) complex64 and onset delays (m, 2) s for unit vectors (m, 3).
         ``method``: barycentric (default) or nearest."""
         H = self.spectra(nfft)
-        if method == "nearest":
-            i = np.argmax(np.atleast_2d(directions) @ self.directions.T, axis=1)
-            return H[i], self.onsets[i]
         from sonicverse_core.acoustics.kernels import mix_spectra
 
-        tri, w = self.fast_weights(directions)
+        tri, w = self.weights(directions, method)
         out = np.empty((len(tri), 2, H.shape[-1]), np.complex64)
         mix_spectra(H, tri, w, np.ones((len(tri), H.shape[-1]), np.float32), np.zeros(len(tri)),
                     np.zeros((2, H.shape[-1]), np.complex64), out)
@@ -138,15 +135,3 @@ class HrtfInterpolator:
             h[..., length - fade:] *= 0.5 * (1 + np.cos(np.pi * (np.arange(fade) + 1) / fade))
             Hsh = np.fft.rfft(h, nfft, axis=-1)
         return Hsh.astype(np.complex64), bulk
-
-    def lookup(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Interpolated aligned filters (m, 2, taps) and onset delays (m, 2) seconds for unit vectors (m, 3)."""
-        tri, w = self.weights(directions)
-        f = np.einsum("mk,mket->met", w, self.filters[tri])
-        o = np.einsum("mk,mke->me", w, self.onsets[tri])
-        return f, o
-
-    def nearest(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest-neighbour lookup (the cheap, clicky alternative used in accuracy sweeps)."""
-        i = np.argmax(np.atleast_2d(directions) @ self.directions.T, axis=1)
-        return self.filters[i], self.onsets[i]

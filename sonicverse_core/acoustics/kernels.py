@@ -236,7 +236,8 @@ def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm):
 
 @njit(**_opts)
 def distance_gain_1(d, mode, d0, D, near_k):
-    """Scalar twin of renderer.distance_gain (mode 0 log, 1 linear, 2 none)."""
+    """Rolloff gain (Resonance Audio's curves: mode 0 log, 1 linear, 2 none; 0 beyond D) times the bounded
+    near-field boost under 1 m."""
     if d > D:
         return 0.0
     if mode == 0:
@@ -397,3 +398,10 @@ def late_send(ring, w0, dist, occ, rt_low, p_send, fresh, out):
         ds = (s - s0) / B
         for t in range(B):
             out[t] += ring[i, w0 + t] * np.float32(s0 + ds * (t + 1))
+
+
+@njit(**_opts)
+def distance_gains(d, mode, d0, D, near_k, out):
+    """distance_gain_1 over an array."""
+    for i in range(len(d)):
+        out[i] = distance_gain_1(d[i], mode, d0, D, near_k)

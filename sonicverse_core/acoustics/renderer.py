@@ -31,12 +31,14 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft as sfft
 
-from sonicverse_core.acoustics.kernels import (accumulate, direct_geometry, encode_taps, gather, image_taps, limit,
-                                               accumulate_sh, late_send, mix_spectra, read_sources, segment_motion)
+from sonicverse_core.acoustics.early import image_amplitudes, lattice, wall_reflectance
+from sonicverse_core.acoustics.kernels import (accumulate, accumulate_sh, direct_geometry, distance_gains, encode_taps,
+                                               gather, image_taps, late_send, limit, mix_spectra, read_sources)
+from sonicverse_core.acoustics.occlusion import Occlusion, may_occlude
 
 from sonicverse_core.acoustics.probes import AIR_ABSORPTION, SPEED_OF_SOUND
 from sonicverse_core.errors import ConfigError, PoseError
-from sonicverse_core.scene.materials import BANDS, material_arrays
+from sonicverse_core.scene.materials import BANDS
 
 MID = slice(4, 7)  # 500 Hz - 2 kHz
 
@@ -96,25 +98,20 @@ def _hrtf(name: str, sample_rate: int, taps: int):
     return HrtfInterpolator(kemar() if name == "kemar" else load_sofa(name), sample_rate, taps=taps)
 
 
-def distance_gain(d: np.ndarray, cfg: RenderConfig) -> np.ndarray:
+def rolloff_params(cfg: RenderConfig) -> tuple:
+    """(mode, d0, max distance, near-field factor) of the distance-law kernels."""
+    return (("log", "linear", "none").index(cfg.rolloff),
+            max(cfg.min_distance, 1.0) if cfg.rolloff == "log" else cfg.min_distance, cfg.max_distance,
+            cfg.near_field_gain / 9)
+
+
+def distance_gain(d, cfg: RenderConfig) -> np.ndarray:
     """Rolloff gain (Resonance Audio's curves) times the near-field boost under 1 m (bounded: at most
-    1 + 9 * near_field_gain / 9 at 0.1 m and closer)."""
+    1 + near_field_gain at 0.1 m and closer); the same kernel the renderer uses per block."""
     d = np.asarray(d, float)
-    d0, D = max(cfg.min_distance, 1.0) if cfg.rolloff == "log" else cfg.min_distance, cfg.max_distance
-    if cfg.rolloff == "log":
-        g = (1 / (np.maximum(d, d0) - d0 + 1) - 1 / (1 + D - d0)) / (1 - 1 / (1 + D - d0))
-    elif cfg.rolloff == "linear":
-        g = np.clip((D - np.maximum(d, d0)) / (D - d0), 0, 1)
-    else:
-        g = np.ones_like(d)
-    g = np.where(d > D, 0.0, g)
-    near = 1 + (1 / np.maximum(d, 0.1) - 1) * cfg.near_field_gain / 9 * (d < 1)
-    return g * near
-
-
-def directivity_gain(alpha: np.ndarray, sharpness: np.ndarray, cos_theta: np.ndarray) -> np.ndarray:
-    """Resonance Audio's pattern |(1 - alpha) + alpha cos(theta)|^sharpness (alpha 0 omni, 0.5 cardioid, 1 dipole)."""
-    return np.abs((1 - alpha) + alpha * cos_theta) ** sharpness
+    out = np.empty(d.size)
+    distance_gains(d.ravel(), *rolloff_params(cfg), out)
+    return out.reshape(d.shape)
 
 
 class Source:
@@ -176,32 +173,18 @@ class Listener:
     pitch: float = 0.0  # degrees, positive looks up
 
     def rotation(self) -> np.ndarray:
-        """World -> head frame rotation matrix (3, 3)."""
+        """World -> head frame (x forward, y left, z up) rotation matrix (3, 3): yaw about z, then pitch."""
         c, s = np.cos(np.radians(self.yaw)), np.sin(np.radians(self.yaw))
         cp, sp = np.cos(np.radians(self.pitch)), np.sin(np.radians(self.pitch))
         return np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]])
 
-    def head_frame(self, world: np.ndarray) -> np.ndarray:
-        """World vectors (n, 3) -> head frame (x forward, y left, z up)."""
-        c, s = np.cos(np.radians(self.yaw)), np.sin(np.radians(self.yaw))
-        x, y, z = world[..., 0], world[..., 1], world[..., 2]
-        fx, fy = c * x + s * y, -s * x + c * y
-        if self.pitch:
-            cp, sp = np.cos(np.radians(self.pitch)), np.sin(np.radians(self.pitch))
-            fx, z = cp * fx + sp * z, -sp * fx + cp * z
-        return np.stack([fx, fy, z], -1)
 
-
-def _segment_meets_boxes(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(n,) bool: does segment a->b meet any of the boxes [lo, hi] (m, 3)? (slab test)"""
-    d = (b - a)[:, None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / np.where(np.abs(d) < 1e-12, 1e-12, d)
-        t0 = (lo[None] - a[:, None, :]) * inv
-        t1 = (hi[None] - a[:, None, :]) * inv
-    tmin = np.max(np.minimum(t0, t1), axis=2)
-    tmax = np.min(np.maximum(t0, t1), axis=2)
-    return np.any((tmax >= np.maximum(tmin, 0.0)) & (tmin <= 1.0), axis=1)
+def _grown(old: np.ndarray | None, shape: tuple, dtype, fill=0) -> np.ndarray:
+    """A new array of ``shape`` filled with ``fill`` whose leading rows are a copy of ``old``."""
+    new = np.full(shape, fill, dtype)
+    if old is not None:
+        new[: len(old)] = old
+    return new
 
 
 class AcousticRenderer:
@@ -226,24 +209,19 @@ class AcousticRenderer:
         lf = np.log2(np.maximum(freqs, BANDS[0]))
         eye = np.eye(len(BANDS))
         self._band_matrix = np.stack([np.interp(lf, np.log2(BANDS), e) for e in eye]).astype(np.float32)
-        self._alpha, _, self._trans = material_arrays()
-        self._log_trans = 0.5 * np.log(np.maximum(self._trans, 1e-12))
-        self.caster = None
-        self._part_lo = self._part_hi = None
-        if cfg.occlusion and scene is not None and self._may_occlude(scene):
-            from sonicverse_core.geometry.raycast import SceneRayCaster
-
-            self.caster = SceneRayCaster(scene)
+        self.occlusion = None
+        if cfg.occlusion and scene is not None and may_occlude(scene):
+            self.occlusion = Occlusion(scene, cfg.occlusion_tolerance, cfg.occlusion_rays_per_block)
             self.subsystems.append("occlusion")
+        self.stats = self.occlusion.stats if self.occlusion else {"occlusion_rays": 0, "occlusion_skipped": 0}
         enclosed = [p for p in (probes or []) if p.enclosed > 0.5]
         self.probes = enclosed or None
+        if self.probes:
+            self._probe_pos = np.array([p.position for p in self.probes])
         self._er = cfg.early_reflections and self.probes is not None
         if self._er:
-            from sonicverse_core.acoustics.early import lattice, wall_reflectance
-
             self._K = len(lattice(cfg.er_order)[0])
             self._refl = [wall_reflectance(p.box_materials) for p in self.probes]
-            self._probe_xyz = np.array([p.position for p in self.probes])
             self._probe_rooms = [scene.room_at(p.position[:2]) if scene is not None and scene.rooms else None
                                  for p in self.probes]
             self._probe_cache = {}
@@ -271,7 +249,6 @@ class AcousticRenderer:
             self.subsystems.append("early_reflections")
         self._late_on = cfg.late_reverb and self.probes is not None
         if self._late_on:
-            self._probe_pos = np.array([p.position for p in self.probes])
             self._probe_rt = np.array([p.rt60 for p in self.probes])
             self._probe_vol = np.array([p.volume for p in self.probes])
             self.subsystems.append("late_reverb")
@@ -289,39 +266,12 @@ class AcousticRenderer:
         self._ramp = ((np.arange(B) + 1) / B).astype(np.float32)
         self._ramp64 = (np.arange(B) + 1) / B
         self.blocks = 0
-        self._rolloff = (("log", "linear", "none").index(cfg.rolloff),
-                         max(cfg.min_distance, 1.0) if cfg.rolloff == "log" else cfg.min_distance, cfg.max_distance,
-                         cfg.near_field_gain / 9)
-        self.stats = {"occlusion_rays": 0, "occlusion_skipped": 0}
-
-    def _may_occlude(self, scene) -> bool:
-        """False when no geometry can lie between two points inside the scene: no static mesh, or a convex static
-        structure (every vertex on the inner side of every face plane) and no dynamic objects."""
-        mesh = scene.static_mesh()
-        if scene.objects or len(mesh) > 2000:
-            return True
-        if len(mesh) == 0:
-            return False
-        v, f = mesh.vertices, mesh.faces
-        tri = v[f]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        centre = v.mean(0)
-        # orient normals inward (towards the centroid) and check that no vertex lies outside any face plane
-        side = np.einsum("ij,ij->i", centre - tri[:, 0], n)
-        n = np.where(side[:, None] < 0, -n, n)
-        dist = np.einsum("fvk,fk->fv", v[None, :, :] - tri[:, None, 0, :], n)
-        return bool(np.any(dist < -1e-6))
+        self._rolloff = rolloff_params(cfg)
 
     def _alloc_sources(self, cap: int) -> None:
-        def grow(a, shape, dtype, fill=0):
-            new = np.full(shape, fill, dtype)
-            if a is not None:
-                new[: len(a)] = a
-            return new
+        def g(name, shape, dtype, fill=0):
+            setattr(self, name, _grown(getattr(self, name, None), shape, dtype, fill))
 
-        g = lambda name, shape, dtype, fill=0: setattr(self, name, grow(getattr(self, name, None), shape, dtype,
-                                                                          fill))
         g("_pos", (cap, 3), np.float64)
         g("_fwd", (cap, 3), np.float64)
         self._fwd[self._cap:, 0] = 1.0
@@ -384,12 +334,11 @@ class AcousticRenderer:
         lis = Listener(np.zeros(3))
         self.set_listener(lis, position, yaw, pitch)
         self.listeners.append(lis)
-        st = {"limit": 1.0, "pose": None, "scene_version": None}
+        st = {"limit": 1.0, "scene_version": None}
         self._grow_state(st, self._cap)
         if self._er:
             st["er_hist"] = np.zeros((self._C, max(self.er_nfft, self.cfg.block)), np.float32)
             st["er_acc"] = np.zeros((2, self.er_nfft // 2 + 1), np.complex64)
-            st["er_filters"] = None
         if self._late_on:
             if self.cfg.reverb == "fdn":
                 from sonicverse_core.acoustics.reverb import FDNReverb
@@ -407,16 +356,17 @@ class AcousticRenderer:
         K = self._K if getattr(self, "_er", False) else 0
 
         def grow(key, shape, dtype, fill=0):
-            new = np.full(shape, fill, dtype)
-            if key in st:
-                new[: len(st[key])] = st[key]
-            st[key] = new
+            st[key] = _grown(st.get(key), shape, dtype, fill)
 
         grow("hist", (cap, 2, self.nfft), np.float32)
         grow("delay", (cap, 2), np.float64)
         grow("gain", (cap,), np.float64)
         grow("spec", (cap, 2, self.nf), np.complex64)
         grow("spec_new", (cap, 2, self.nf), np.complex64)
+        for key, shape, dtype in (("dirs", (cap, 3), np.float64), ("dist", (cap,), np.float64),
+                                  ("gain_new", (cap,), np.float64), ("amp", (cap, len(BANDS)), np.float32),
+                                  ("delay0", (cap,), np.float64)):  # per-block geometry, written by the kernel
+            grow(key, shape, dtype)
         st["acc"] = np.zeros((2, 2, self.nf), np.complex64)
         grow("occ", (cap, len(BANDS)), np.float64, 1.0)
         grow("occ_target", (cap, len(BANDS)), np.float64, 1.0)
@@ -460,79 +410,6 @@ class AcousticRenderer:
             s.pending = None
         self.write = (w0 + B) % self.hist
 
-    def _occlusion(self, st: dict, lis: Listener) -> None:
-        """Update the per-band occlusion amplitudes of every source (n, 9) for this listener."""
-        n = self._n
-        if self.caster is None:
-            return
-        version = self.scene.dynamic_version
-        if version != st["scene_version"]:
-            todo = np.ones(n, bool)
-            st["scene_version"] = version
-            self._part_boxes()
-        else:
-            # recast the segments that moved more than occlusion_tolerance, most-moved first, at most
-            # occlusion_rays_per_block of them (never-cast segments have NaN and go first)
-            moved = np.empty(n)
-            segment_motion(self._pos[:n], lis.position, st["occ_seg"][:n], moved)
-            todo = moved > self.cfg.occlusion_tolerance
-            budget = self.cfg.occlusion_rays_per_block
-            if np.count_nonzero(todo) > budget:
-                keep = np.argpartition(-moved, budget)[:budget]
-                todo = np.zeros(n, bool)
-                todo[keep] = True
-        if np.any(todo):
-            idx = np.flatnonzero(todo)
-            seg = np.concatenate([self._pos[idx], np.broadcast_to(lis.position, (len(idx), 3))], axis=1)
-            a, b = seg[:, :3], seg[:, 3:]
-            near = _segment_meets_boxes(a, b, self._part_lo, self._part_hi) if len(self._part_lo) else \
-                np.zeros(len(idx), bool)
-            target = np.ones((len(idx), len(BANDS)))
-            cast = np.flatnonzero(near & (np.linalg.norm(b - a, axis=1) > 1e-6))
-            self.stats["occlusion_rays"] += len(cast)
-            self.stats["occlusion_skipped"] += len(idx) - len(cast)
-            if len(cast):
-                cr = self.caster.crossings(a[cast], b[cast])
-                if len(cr.ray):
-                    key = cr.ray.astype(np.int64) * (int(cr.part.max()) + 1) + cr.part
-                    _, first = np.unique(key, return_index=True)  # a part counts once per segment
-                    logamp = np.zeros((len(cast), len(BANDS)))
-                    np.add.at(logamp, cr.ray[first], self._log_trans[cr.material[first]])
-                    target[cast] = np.exp(logamp)
-            st["occ_target"][idx] = target
-            st["occ_seg"][idx] = seg
-
-    def _part_boxes(self) -> None:
-        """Bounding boxes of every static part and dynamic object (for the occlusion pre-check)."""
-        los, his = [], []
-        mesh = self.scene.static_mesh()
-        if len(mesh):
-            tri = mesh.vertices[mesh.faces]
-            part = mesh.face_part
-            order = np.argsort(part, kind="stable")
-            bounds = np.unique(part[order], return_index=True)[1]
-            los.append(np.minimum.reduceat(tri.min(1)[order], bounds))
-            his.append(np.maximum.reduceat(tri.max(1)[order], bounds))
-        dyn = self.scene.dynamic_mesh()
-        if dyn is not None and len(dyn):
-            tri = dyn.vertices[dyn.faces]
-            los.append(tri.min(1).min(0, keepdims=True))
-            his.append(tri.max(1).max(0, keepdims=True))
-            part = dyn.face_part
-            order = np.argsort(part, kind="stable")
-            bounds = np.unique(part[order], return_index=True)[1]
-            los[-1] = np.minimum.reduceat(tri.min(1)[order], bounds)
-            his[-1] = np.maximum.reduceat(tri.max(1)[order], bounds)
-        self._part_lo = np.concatenate(los) - 1e-3 if los else np.zeros((0, 3))
-        self._part_hi = np.concatenate(his) + 1e-3 if his else np.zeros((0, 3))
-
-    def _gather(self, n: int, d_old, d_new, g_old, g_new) -> np.ndarray:
-        """Read the ring's first n rows at delays (n, e) seconds and gains (n, e), both ramping old -> new across
-        the block, with linear interpolation: (n, e, B) float32."""
-        out = np.empty(d_new.shape + (self.cfg.block,), np.float32)
-        gather(self._ring, self.write - self.cfg.block, d_old, d_new, float(self.cfg.sample_rate), g_old, g_new, out)
-        return out
-
     def render_block(self) -> list[np.ndarray]:
         """Advance one block; returns one (2, block) float32 array per listener."""
         if not self.listeners:
@@ -542,38 +419,35 @@ class AcousticRenderer:
         for li, lis in enumerate(self.listeners):
             st = self._state[li]
             out = np.zeros((2, self.cfg.block))
-            if self._n:
-                rel = self._pos[: self._n] - lis.position
-                dist = np.linalg.norm(rel, axis=1)
-                self._occlusion(st, lis)
+            n = self._n
+            if n:
+                if self.occlusion is not None:
+                    self.occlusion.update(st, self._pos[:n], lis.position)
                 k = self.cfg.occlusion_smoothing if self.blocks else 0.0
-                occ = st["occ"][: self._n]
-                occ += (1 - k) * (st["occ_target"][: self._n] - occ)
-                occ[st["fresh"][: self._n]] = st["occ_target"][: self._n][st["fresh"][: self._n]]
-                out += self._direct(st, lis, rel, dist, occ)
+                occ, target, fresh = st["occ"][:n], st["occ_target"][:n], st["fresh"][:n]
+                occ += (1 - k) * (target - occ)
+                occ[fresh] = target[fresh]
+                R = lis.rotation()
+                out += self._direct(st, lis, R, occ)
                 if self._er:
-                    out += self._early(st, lis, occ)
+                    out += self._early(st, lis, R, occ)
                 if self._late_on:
-                    out += self._late(st, lis, dist, occ)
-                st["fresh"][: self._n] = False
+                    out += self._late(st, lis, st["dist"][:n], occ)
+                fresh[:] = False
             outs.append(self._limit(st, out))
         self.blocks += 1
         return outs
 
-    def _direct(self, st, lis, rel, dist, occ) -> np.ndarray:
+    def _direct(self, st, lis, R, occ) -> np.ndarray:
         cfg, n, B = self.cfg, self._n, self.cfg.block
-        dirs, gain, amp, delay0 = np.empty((n, 3)), np.empty(n), np.empty((n, len(BANDS)), np.float32), np.empty(n)
-        direct_geometry(self._pos[:n], lis.position, lis.rotation(), self._fwd[:n], self._dir_alpha[:n],
+        dirs, dist, gain, amp, delay0 = (st[k][:n] for k in ("dirs", "dist", "gain_new", "amp", "delay0"))
+        direct_geometry(self._pos[:n], lis.position, R, self._fwd[:n], self._dir_alpha[:n],
                         self._dir_sharp[:n], occ, AIR_ABSORPTION, *self._rolloff, SPEED_OF_SOUND, dirs, dist, gain,
                         amp, delay0)
         curve = amp @ self._band_matrix  # (n, nf)
         spec = st["spec_new"][:n]
         if self.hrtf is not None:
-            if cfg.hrtf_interpolation == "nearest":
-                i = np.argmax(dirs @ self.hrtf.directions.T, axis=1)
-                tri, w = np.stack([i, i, i], 1), np.tile([1.0, 0.0, 0.0], (n, 1))
-            else:
-                tri, w = self.hrtf.fast_weights(dirs)
+            tri, w = self.hrtf.weights(dirs, cfg.hrtf_interpolation)
             spread = self._spread[:n] / 360.0
             mix_spectra(self.hrtf.spectra(self.nfft), tri, w, curve, spread, self._diffuse_spectrum(), spec)
             onset = np.einsum("mk,mke->me", w, self.hrtf.onsets[tri])
@@ -621,7 +495,7 @@ class AcousticRenderer:
         overall where the room is unknown or has none); cached while the listener stays within 10 cm."""
         key = self._probe_cache.get("key")
         if key is None or np.max(np.abs(key - p)) > 0.05:
-            d2 = np.sum((self._probe_xyz - p) ** 2, axis=1)
+            d2 = np.sum((self._probe_pos - p) ** 2, axis=1)
             room = self.scene.room_at(p[:2]) if self.scene is not None and self.scene.rooms else None
             same = np.array([r is not None and r is room for r in self._probe_rooms]) if room is not None else None
             if same is not None and same.any():
@@ -629,18 +503,16 @@ class AcousticRenderer:
             self._probe_cache = {"key": p.copy(), "k": int(np.argmin(d2))}
         return self._probe_cache["k"]
 
-    def _early(self, st, lis, occ) -> np.ndarray:
+    def _early(self, st, lis, R, occ) -> np.ndarray:
         """Image sources of the nearest probe's box, encoded in 2nd-order ambisonics, decoded binaurally."""
-        from sonicverse_core.acoustics.early import image_sources, lattice
-
         cfg, n, B = self.cfg, self._n, self.cfg.block
         k = self._nearest_probe(lis.position)
         pr = self.probes[k]
         if k not in self._er_amp:
-            self._er_amp[k] = image_sources(pr.box_lo[None], pr.box_lo, pr.box_hi, self._refl[k], cfg.er_order)[1]
+            self._er_amp[k] = image_amplitudes(self._refl[k], cfg.er_order)
         q, m, _ = lattice(cfg.er_order)
         delay, gain, Y = st["er_delay_new"][:n], st["er_gain_new"][:n], st["er_Y_new"][:n]
-        image_taps(self._pos[:n], pr.box_lo, pr.box_hi, q, m, self._er_amp[k], lis.position, lis.rotation(),
+        image_taps(self._pos[:n], pr.box_lo, pr.box_hi, q, m, self._er_amp[k], lis.position, R,
                    *self._rolloff, np.ascontiguousarray(occ[:, MID].mean(1)), self._er_bulk, SPEED_OF_SOUND, delay,
                    gain, Y)
         fresh = st["fresh"][:n]
