@@ -93,6 +93,9 @@ def cmd_bake(a) -> int:
 
 
 def add_audio_commands(sub, bench_sub) -> None:
+    from app.audio_rt.cli import add_commands
+
+    add_commands(sub)
     r = sub.add_parser("render", help="render binaural audio of one source to a file",
                        description="Render a sound at a source position as heard at a listener (binaural).")
     r.add_argument("spec", help="scene spec")

@@ -45,6 +45,10 @@ class DeviceError(SonicverseError):
     """An audio or VR device that does not exist, does not support a setting, or disappeared."""
 
 
+class AudioCallbackError(SonicverseError):
+    """An exception inside the real-time audio callback (its block played silence); reported on the main side."""
+
+
 class DependencyError(SonicverseError):
     """An optional dependency that is not installed; the message names the install command."""
 

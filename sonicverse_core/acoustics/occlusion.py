@@ -2,8 +2,9 @@
 
 Embree rays through static and dynamic geometry; every part crossed (once per part) multiplies its material's
 amplitude transmission per band. Rays are cast only where needed: segments whose ends moved more than a tolerance
-(most-moved first, a budget per block), every segment in the block after the scene's dynamic state changes (a door),
-none where no part's bounding box meets the segment, and none at all in a convex scene.
+(most-moved first, a budget per block), in the block after the scene's dynamic state changes (a door) every segment
+that meets the box of an object that moved (before or after its move), none where no part's bounding box meets
+the segment, and none at all in a convex scene.
 """
 from __future__ import annotations
 
@@ -64,32 +65,70 @@ class Occlusion:
         self.tolerance, self.budget = tolerance, rays_per_block
         self._log_trans = 0.5 * np.log(np.maximum(material_arrays()[2], 1e-12))
         self._boxes_version = None
+        self._poses = {o.name: o.pose.copy() for o in scene.objects}
+        self._dirty_version, self._dirty = scene.dynamic_version, None
         self.stats = {"occlusion_rays": 0, "occlusion_skipped": 0}
 
+    def _changed_boxes(self):
+        """(lo, hi) boxes (before and after) of the objects that moved since the previous scene version, or None
+        when the set of objects changed (everything is recast then)."""
+        if self._dirty_version != self.scene.dynamic_version:
+            objs = self.scene.objects
+            if set(self._poses) != {o.name for o in objs}:
+                self._dirty = None
+            else:
+                lo, hi = [], []
+                for o in objs:
+                    old = self._poses[o.name]
+                    if not np.array_equal(old, o.pose):
+                        for pose in (old, o.pose):
+                            corners = np.array(np.meshgrid(*o.mesh.bounds.T, indexing="ij")).reshape(3, -1).T
+                            w = corners @ pose[:3, :3].T + pose[:3, 3]
+                            lo.append(w.min(0) - 0.01)
+                            hi.append(w.max(0) + 0.01)
+                self._dirty = (np.array(lo).reshape(-1, 3), np.array(hi).reshape(-1, 3))
+            self._poses = {o.name: o.pose.copy() for o in objs}
+            self._dirty_version = self.scene.dynamic_version
+        return self._dirty
+
     def _boxes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Part bounding boxes of the static structure and dynamic objects, rebuilt when the scene changes."""
+        """Part bounding boxes of the static structure (once) and dynamic objects (when the scene changes)."""
         if self._boxes_version != self.scene.dynamic_version:
-            boxes = [_part_bounds(m) for m in (self.scene.static_mesh(), self.scene.dynamic_mesh())
-                     if m is not None and len(m)]
-            self._lo = np.concatenate([b[0] for b in boxes]) - 1e-3 if boxes else np.zeros((0, 3))
-            self._hi = np.concatenate([b[1] for b in boxes]) + 1e-3 if boxes else np.zeros((0, 3))
+            if not hasattr(self, "_static_boxes"):
+                m = self.scene.static_mesh()
+                self._static_boxes = _part_bounds(m) if len(m) else (np.zeros((0, 3)), np.zeros((0, 3)))
+            dyn = self.scene.dynamic_mesh()
+            d = _part_bounds(dyn) if dyn is not None and len(dyn) else (np.zeros((0, 3)), np.zeros((0, 3)))
+            self._lo = np.concatenate([self._static_boxes[0], d[0]]) - 1e-3
+            self._hi = np.concatenate([self._static_boxes[1], d[1]]) + 1e-3
             self._boxes_version = self.scene.dynamic_version
         return self._lo, self._hi
+
+    def prepare(self) -> None:
+        """Build what the next update needs after a scene change (dynamic mesh, its ray caster, part boxes, the
+        moved objects' boxes), so that a real-time caller can spread a door's cost over two blocks."""
+        self.caster.dynamic
+        self._boxes()
+        self._changed_boxes()
 
     def update(self, st: dict, pos: np.ndarray, lis: np.ndarray) -> None:
         """Recast what needs it for sources at ``pos`` (n, 3) heard at ``lis`` (3,); writes st['occ_target']."""
         n = len(pos)
         version = self.scene.dynamic_version
-        if version != st["scene_version"]:
-            todo = np.ones(n, bool)
+        # never-cast segments have NaN ends: infinitely moved, they go first
+        moved = np.empty(n)
+        segment_motion(pos, lis, st["occ_seg"][:n], moved)
+        todo = moved > self.tolerance
+        if np.count_nonzero(todo) > self.budget:
+            todo = np.zeros(n, bool)
+            todo[np.argpartition(-moved, self.budget)[: self.budget]] = True
+        if version != st["scene_version"]:  # a door or an object moved: recast, now, every segment it may affect
+            dirty = self._changed_boxes() if st["scene_version"] is not None else None
+            if dirty is None:
+                todo[:] = True
+            elif len(dirty[0]):
+                todo |= segment_meets_boxes(pos, np.broadcast_to(lis, pos.shape), *dirty)
             st["scene_version"] = version
-        else:  # never-cast segments have NaN ends: infinitely moved, they go first
-            moved = np.empty(n)
-            segment_motion(pos, lis, st["occ_seg"][:n], moved)
-            todo = moved > self.tolerance
-            if np.count_nonzero(todo) > self.budget:
-                todo = np.zeros(n, bool)
-                todo[np.argpartition(-moved, self.budget)[: self.budget]] = True
         if not np.any(todo):
             return
         idx = np.flatnonzero(todo)

@@ -224,7 +224,6 @@ class AcousticRenderer:
             self._refl = [wall_reflectance(p.box_materials) for p in self.probes]
             self._probe_rooms = [scene.room_at(p.position[:2]) if scene is not None and scene.rooms else None
                                  for p in self.probes]
-            self._probe_cache = {}
             self._er_amp = {}
             self._amb_order = 2
             self._C = (self._amb_order + 1) ** 2
@@ -330,7 +329,8 @@ class AcousticRenderer:
         self.sources.append(s)
         return s
 
-    def add_listener(self, position=(0, 0, 1.5), yaw=0.0, pitch=0.0) -> Listener:
+    def add_listener(self, position=(0, 0, 1.5), yaw=0.0, pitch=0.0, exclude=()) -> Listener:
+        """A listener; ``exclude``: sources it does not hear (e.g. the user's own microphone: no sidetone)."""
         lis = Listener(np.zeros(3))
         self.set_listener(lis, position, yaw, pitch)
         self.listeners.append(lis)
@@ -350,7 +350,14 @@ class AcousticRenderer:
                 st["conv"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._probe_rt)
             st["late_level"] = None
         self._state.append(st)
+        for src in exclude:
+            self.set_heard(lis, src, False)
         return lis
+
+    def set_heard(self, lis: Listener, source: Source, heard: bool) -> None:
+        """Whether ``lis`` hears ``source`` at all (direct, reflections and reverb)."""
+        k = next(i for i, li in enumerate(self.listeners) if li is lis)
+        self._state[k]["mute"][source.index] = not heard
 
     def _grow_state(self, st: dict, cap: int) -> None:
         K = self._K if getattr(self, "_er", False) else 0
@@ -372,6 +379,7 @@ class AcousticRenderer:
         grow("occ_target", (cap, len(BANDS)), np.float64, 1.0)
         grow("occ_seg", (cap, 6), np.float64, np.nan)
         grow("fresh", (cap,), bool, True)
+        grow("mute", (cap,), bool, False)
         if K:
             grow("er_delay", (cap, K), np.float64)
             grow("er_gain", (cap, K), np.float64)
@@ -427,6 +435,7 @@ class AcousticRenderer:
                 occ, target, fresh = st["occ"][:n], st["occ_target"][:n], st["fresh"][:n]
                 occ += (1 - k) * (target - occ)
                 occ[fresh] = target[fresh]
+                occ[st["mute"][:n]] = 0.0  # a source this listener does not hear: no direct, ER or late path
                 R = lis.rotation()
                 out += self._direct(st, lis, R, occ)
                 if self._er:
@@ -490,23 +499,23 @@ class AcousticRenderer:
             self._diffuse = np.sqrt(np.mean(np.abs(H) ** 2, axis=0)).astype(np.complex64)
         return self._diffuse
 
-    def _nearest_probe(self, p: np.ndarray) -> int:
+    def _nearest_probe(self, st, p: np.ndarray) -> int:
         """The probe for the listener's early reflections: the nearest one in the listener's room (the nearest
-        overall where the room is unknown or has none); cached while the listener stays within 10 cm."""
-        key = self._probe_cache.get("key")
+        overall where the room is unknown or has none); cached per listener while it stays within 5 cm."""
+        key = st.get("probe_key")
         if key is None or np.max(np.abs(key - p)) > 0.05:
             d2 = np.sum((self._probe_pos - p) ** 2, axis=1)
             room = self.scene.room_at(p[:2]) if self.scene is not None and self.scene.rooms else None
             same = np.array([r is not None and r is room for r in self._probe_rooms]) if room is not None else None
             if same is not None and same.any():
                 d2 = np.where(same, d2, np.inf)
-            self._probe_cache = {"key": p.copy(), "k": int(np.argmin(d2))}
-        return self._probe_cache["k"]
+            st["probe_key"], st["probe"] = p.copy(), int(np.argmin(d2))
+        return st["probe"]
 
     def _early(self, st, lis, R, occ) -> np.ndarray:
         """Image sources of the nearest probe's box, encoded in 2nd-order ambisonics, decoded binaurally."""
         cfg, n, B = self.cfg, self._n, self.cfg.block
-        k = self._nearest_probe(lis.position)
+        k = self._nearest_probe(st, lis.position)
         pr = self.probes[k]
         if k not in self._er_amp:
             self._er_amp[k] = image_amplitudes(self._refl[k], cfg.er_order)

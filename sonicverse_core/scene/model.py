@@ -222,6 +222,7 @@ class Scene:
         self.dynamic_version = 0
         self._static_mesh: SceneMesh | None = None
         self._dynamic_cache: tuple[int, SceneMesh] | None = None
+        self._world_cache: dict[str, tuple[bytes, trimesh.Trimesh]] = {}
         names = [o.name for o in self.objects]
         if len(set(names)) != len(names):
             raise MeshError(f"scene '{name}': object names must be unique")
@@ -262,7 +263,14 @@ class Scene:
 
     def dynamic_mesh(self) -> SceneMesh:
         if self._dynamic_cache is None or self._dynamic_cache[0] != self.dynamic_version:
-            mesh = SceneMesh.from_parts([(o.name, o.material, o.world_mesh()) for o in self.objects])
+            parts = []
+            for o in self.objects:  # only objects that moved are transformed again (a door swinging: one)
+                key = o.pose.tobytes()
+                hit = self._world_cache.get(o.name)
+                if hit is None or hit[0] != key:
+                    hit = self._world_cache[o.name] = (key, o.world_mesh())
+                parts.append((o.name, o.material, hit[1]))
+            mesh = SceneMesh.from_parts(parts)
             self._dynamic_cache = (self.dynamic_version, mesh)
         return self._dynamic_cache[1]
 

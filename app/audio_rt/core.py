@@ -1,0 +1,242 @@
+"""The audio side: the renderer for the user's ears and the robots', and the body of the stream callback.
+
+The callback (:meth:`AudioCore.callback`) does, per block: copy the microphone into its ring; read the newest pose
+frame through the sequence lock and advance the interpolated poses; move the listeners, the sources, the mouth
+(the microphone's source) and the doors; render one block; write the user's block to the output and every
+listener's block to its ring; record its own duration. Everything it touches is allocated before the stream starts;
+an exception is caught, counted and written to the error slot, and the block plays silence.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from app.audio_rt import config as C
+from app.audio_rt.config import AudioConfig, AudioScene
+from app.audio_rt.poses import PoseInterpolator, PoseLayout, mouth
+from app.audio_rt.shared import Layout, Ring, SeqLock
+
+ERROR_BYTES = 1024
+
+
+def shared_layout(cfg: AudioConfig, n_listeners: int, pose: PoseLayout) -> Layout:
+    cap = int(cfg.ring_seconds * cfg.sample_rate)
+    L = Layout()
+    L.add("tele", C.N_TELE, np.int64)
+    L.add("telef", C.N_TELEF, np.float64)
+    L.add("dur", (1, C.DURATIONS), np.float32)
+    L.add("dur_head", 1, np.int64)
+    L.add("error", ERROR_BYTES, np.uint8)
+    L.add("pose_seq", 1, np.int64)
+    L.add("pose", pose.size, np.float64)
+    L.add("mic", (1, cap), np.float32)
+    L.add("mic_head", 1, np.int64)
+    for k in range(n_listeners):  # 0: the user's ears (what was sent to the output), 1..: robots
+        L.add(f"ears{k}", (2, cap), np.float32)
+        L.add(f"ears{k}_head", 1, np.int64)
+    return L
+
+
+class Shared:
+    """Both sides' view of the block: rings, the pose seqlock, telemetry and the error slot."""
+
+    def __init__(self, layout: Layout, buf, n_listeners: int):
+        v = layout.views(buf)
+        self.v = v
+        self.tele, self.telef, self.error = v["tele"], v["telef"], v["error"]
+        self.durations = Ring(v["dur"], v["dur_head"])
+        self.poses = SeqLock(v["pose_seq"], v["pose"])
+        self.mic = Ring(v["mic"], v["mic_head"])
+        self.ears = [Ring(v[f"ears{k}"], v[f"ears{k}_head"]) for k in range(n_listeners)]
+
+    def set_error(self, message: str) -> None:
+        b = message.encode("utf-8", "replace")[: ERROR_BYTES - 1]
+        self.error[: len(b)] = np.frombuffer(b, np.uint8)
+        self.error[len(b)] = 0
+        self.tele[C.ERROR_SEQ] += 1
+
+    def error_text(self) -> str:
+        raw = bytes(self.error)
+        return raw[: raw.index(0) if 0 in raw else len(raw)].decode("utf-8", "replace")
+
+
+def build_renderer(scene_setup: AudioScene, cfg: AudioConfig):
+    """(renderer, scene, mic source or None, door names) for the audio side."""
+    from app.cli_audio import load_sound
+    from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+
+    scene, probes = None, None
+    if scene_setup.spec is not None:
+        from sonicverse_core.scene.spec import load_scene
+
+        scene = load_scene(scene_setup.spec)
+        if scene_setup.late_reverb or scene_setup.early_reflections:
+            from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions, \
+                enclosed_fraction
+
+            positions = default_probe_positions(scene)
+            if np.any(enclosed_fraction(scene, positions) > 0.5):
+                probes = bake(scene, positions, BakeConfig(rays=scene_setup.bake_rays))
+    rc = RenderConfig(sample_rate=cfg.sample_rate, block=cfg.block, occlusion=scene_setup.occlusion,
+                      early_reflections=scene_setup.early_reflections, late_reverb=scene_setup.late_reverb,
+                      occlusion_rays_per_block=scene_setup.occlusion_budget)
+    r = AcousticRenderer(scene, rc, probes=probes)
+    for s in scene_setup.sources:
+        if isinstance(s.sound, str):
+            sig, sr = load_sound(s.sound, cfg.sample_rate)
+        else:
+            sig, sr = np.asarray(s.sound, np.float32), s.sample_rate or cfg.sample_rate
+        r.add_source(sig, s.position, loop=s.loop, gain=s.gain, sample_rate=sr)
+    mic = None
+    head = np.array(scene_setup.head, float)
+    if cfg.mic:
+        m, fwd = mouth(head)
+        mic = r.add_source(live=True, position=m, gain=cfg.mic_gain, directivity=scene_setup.mic_directivity,
+                           forward=fwd)
+    user = r.add_listener(head[:3], head[3], head[4], exclude=[mic] if mic is not None and not cfg.sidetone else ())
+    for rb in scene_setup.robots:
+        r.add_listener(rb[:3], rb[3])
+    doors = [d.name for d in scene.doors] if scene is not None else []
+    return r, scene, mic, user, doors
+
+
+class AudioCore:
+    """Owns the renderer on the audio side and implements the stream callback."""
+
+    def __init__(self, cfg: AudioConfig, scene_setup: AudioScene, shared: Shared, pose_layout: PoseLayout,
+                 renderer=None):
+        self.cfg, self.sh, self.L = cfg, shared, pose_layout
+        if renderer is None:
+            renderer = build_renderer(scene_setup, cfg)
+        self.r, self.scene, self.mic, self.user, self.doors = renderer
+        self.n_scene = len(scene_setup.sources)
+        self.robots = self.r.listeners[1:]
+        B = cfg.block
+        self.block_s = B / cfg.sample_rate
+        self.interp = PoseInterpolator(pose_layout)
+        self.frame = np.zeros(pose_layout.size)
+        head = np.array(scene_setup.head, float)
+        self.interp.new_frame(pose_layout.frame(
+            0.0, head, robots=[rb for rb in scene_setup.robots],
+            sources=[s.position for s in scene_setup.sources], gains=[s.gain for s in scene_setup.sources],
+            doors=[self.scene.object(d).open_fraction for d in self.doors] if self.doors else (),
+            sidetone=cfg.sidetone))
+        self.door_state = self.interp.cur[pose_layout.DOORS].copy()
+        self.door_change = False
+        self.sidetone = cfg.sidetone
+        self.mic_block = np.zeros(B, np.float32)
+        self.zero_mic = np.zeros((1, B), np.float32)
+        self.out_block = np.zeros((2, B), np.float32)
+        # loopback test signal: a 4096-sample white-noise burst every half second on the left channel
+        self.test = None
+        if cfg.test_signal:
+            rng = np.random.default_rng(1234)
+            self.test_period = period = int(0.5 * cfg.sample_rate) // B * B
+            self.test = np.zeros(period, np.float32)
+            self.test[:4096] = 0.25 * rng.uniform(-1, 1, 4096).astype(np.float32)
+        self.frames = 0
+        self.warmup_blocks = scene_setup.warmup_blocks
+        self._dur = np.zeros((1, 1), np.float32)
+
+    def warm_up(self) -> None:
+        """Render the first blocks before the stream starts: JIT caches load, every occlusion ray is cast once."""
+        for _ in range(self.warmup_blocks):
+            self._apply_poses()
+            self.r.render_block()
+
+    def _apply_poses(self) -> None:
+        L, sh = self.L, self.sh
+        got = sh.poses.read_into(self.frame)
+        if got == 1:
+            self.interp.new_frame(self.frame)
+            sh.tele[C.POSE_FRAMES] += 1
+        elif got < 0:
+            sh.tele[C.POSE_TORN] += 1
+        v = self.interp.advance(self.block_s)
+        r = self.r
+        head = v[L.HEAD]
+        r.set_listener(self.user, head[:3], head[3], head[4])
+        for k, lis in enumerate(self.robots):
+            rb = v[L.ROBOTS.start + 4 * k: L.ROBOTS.start + 4 * k + 4]
+            r.set_listener(lis, rb[:3], rb[3], 0.0)
+        n = self.n_scene
+        if n:
+            r._pos[:n] = v[L.SOURCES].reshape(n, 3)
+            r._gain[:n] = v[L.GAINS]
+        if self.mic is not None:
+            m, fwd = mouth(head)
+            r._pos[self.mic.index] = m
+            r._fwd[self.mic.index] = fwd
+            side = v[L.SIDETONE]
+            if (side > 0) != (self.sidetone > 0):
+                r.set_heard(self.user, self.mic, side > 0)
+            self.sidetone = side
+        if self.doors:  # doors take the newest frame's state, not a ramp: one geometry rebuild per change
+            d = self.interp.target[L.DOORS]
+            if np.any(d != self.door_state):
+                self.door_change = True
+
+    def _apply_doors(self) -> None:
+        """After a block's output is written: move the doors and build their geometry; the occlusion rays they
+        affect are cast in the next block (a door's cost is spread over two blocks)."""
+        d = self.interp.target[self.L.DOORS]
+        for k in np.flatnonzero(d != self.door_state):
+            self.scene.set_door(self.doors[k], float(d[k]))
+            self.door_state[k] = d[k]
+        if self.r.occlusion is not None:
+            self.r.occlusion.prepare()
+        self.door_change = False
+
+    def callback(self, indata, outdata, frames, time_info, status) -> None:
+        t0 = time.perf_counter()
+        sh, tele = self.sh, self.sh.tele
+        try:
+            if status:
+                tele[C.XRUNS] += 1
+                if status.input_overflow:
+                    tele[C.IN_OVERFLOW] += 1
+                if status.output_underflow:
+                    tele[C.OUT_UNDERFLOW] += 1
+                if status.priming_output:
+                    tele[C.PRIMING] += 1
+            if frames != self.cfg.block:
+                raise RuntimeError(f"the device delivered {frames} frames, not {self.cfg.block}")
+            if tele[C.FAULTS] > 0:  # test hook: the main side asks for a failing block
+                tele[C.FAULTS] -= 1
+                raise RuntimeError("injected fault (test hook)")
+            if self.mic is not None:
+                np.multiply(indata[:, self.cfg.mic_channel], 1.0, out=self.mic_block)
+                sh.mic.write(self.mic_block[None])
+                self.mic.pending = self.mic_block
+            self._apply_poses()
+            outs = self.r.render_block()
+            ob = self.out_block
+            ob[:] = outs[0]
+            if self.test is not None:
+                i = self.frames % len(self.test)
+                ob[0] += self.test[i:i + frames]
+                np.clip(ob, -1.0, 1.0, out=ob)
+            outdata[:, 0] = ob[0]
+            outdata[:, 1] = ob[1]
+            if outdata.shape[1] > 2:
+                outdata[:, 2:] = 0.0
+            sh.ears[0].write(ob)
+            for k in range(1, len(outs)):
+                sh.ears[k].write(outs[k])
+            if self.door_change:
+                self._apply_doors()
+        except Exception as exc:  # noqa: BLE001 - the callback must never raise into PortAudio
+            outdata.fill(0.0)
+            tele[C.ERRORS] += 1
+            try:
+                sh.set_error(f"{type(exc).__name__}: {exc}")
+            except Exception:  # noqa: BLE001
+                pass
+        self.frames += frames
+        tele[C.FRAMES] = self.frames
+        tele[C.CALLBACKS] += 1
+        t1 = time.perf_counter()
+        sh.telef[C.LAST_CALLBACK] = t1
+        self._dur[0] = t1 - t0
+        sh.durations.write(self._dur)

@@ -1,0 +1,267 @@
+"""The main side of the real-time audio pipeline: start, feed poses, read what listeners heard, watch health.
+
+    with AudioEngine(AudioConfig(device="system"), AudioScene("builtin:apartment", robots=[(2, 1, 0.4, 0)])) as eng:
+        while running:                       # the frame loop
+            eng.set_poses(t, head=(x, y, z, yaw, pitch), robots=[...])
+            robot_ears = eng.read_ears(1)    # (2, n) float32: what the robot heard since the last call
+            for event in eng.poll():         # callback errors, device loss: reported here, never raised by audio
+                log(event)
+"""
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing as mp
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from multiprocessing.connection import Connection
+
+import numpy as np
+
+from app.audio_rt import config as C
+from app.audio_rt.config import AudioConfig, AudioScene
+from app.audio_rt.core import Shared, shared_layout
+from app.audio_rt.poses import PoseLayout
+from app.audio_rt.shared import SharedBlock
+from sonicverse_core import errors as E
+
+
+# the worker's math libraries run on the callback thread only: no BLAS/OpenMP pools spinning beside it
+_SINGLE_THREADED = {k: "1" for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
+                                     "NUMBA_NUM_THREADS")}
+
+
+class AudioEngine:
+    def __init__(self, cfg: AudioConfig = AudioConfig(), scene: AudioScene = AudioScene()):
+        if scene.spec is not None and not scene.doors:
+            from sonicverse_core.scene.spec import load_scene
+
+            doors = load_scene(scene.spec).doors
+            scene = dataclasses.replace(scene, doors=tuple(d.name for d in doors),
+                                        door_open=tuple(d.open_fraction for d in doors))
+        self.cfg, self.scene = cfg, scene
+        self.pose_layout = PoseLayout(len(scene.robots), len(scene.sources), len(scene.doors))
+        self.n_listeners = 1 + len(scene.robots)
+        self.layout = shared_layout(cfg, self.n_listeners, self.pose_layout)
+        self.info: dict | None = None
+        self.state = "stopped"
+        self.events: list[str] = []
+        self._proc = self._thread = self._conn = self._block = None
+        self._errors_seen = 0
+        self._t0 = time.monotonic()
+        self._door_values = np.array(scene.door_open if scene.door_open else [1.0] * len(scene.doors), float)
+        self.opens = 0
+
+    # --- life cycle ---------------------------------------------------------------------------------------------
+    def start(self) -> dict:
+        """Open the stream (a new worker); raises DeviceError / ConfigError with a one-line message on failure."""
+        if self.state == "running":
+            return self.info
+        cfg = self.cfg
+        thread = cfg.mode == "thread"
+        self._block = SharedBlock(self.layout.size, private=thread)
+        self.sh = Shared(self.layout, self._block.buf, self.n_listeners)
+        self._errors_seen = 0
+        if thread:
+            parent, child = mp.Pipe()
+            self._thread = threading.Thread(target=_run_worker, name="sonicverse-audio", daemon=True,
+                                            args=(child, cfg, self.scene, None, self._block.buf))
+            self._thread.start()
+        else:
+            # a fresh interpreter (not fork: the caller may hold GL contexts or threads; not multiprocessing's
+            # spawn, which re-imports the caller's main script), talking over a socket pair
+            a, b = socket.socketpair()
+            self._proc = subprocess.Popen(
+                [sys.executable, "-c", "import app.audio_rt.worker as w; w.main()", str(b.fileno())],
+                pass_fds=(b.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                env={**os.environ, **_SINGLE_THREADED})
+            b.close()
+            parent = Connection(a.detach())
+            parent.send((cfg, self.scene, self._block.path))
+        self._conn = parent
+        try:
+            msg = self._wait(cfg.start_timeout)
+        finally:
+            self._block.unlink()  # both sides have it mapped; nothing is left in /dev/shm whatever happens
+        if msg is None:
+            self._kill()
+            raise E.DeviceError(f"the audio worker did not start within {cfg.start_timeout:.0f} s")
+        if msg[0] == "error":
+            self._kill()
+            self.state = "failed"
+            raise getattr(E, msg[1], E.DeviceError)(msg[2])
+        self.info, self.state = msg[1], "running"
+        self._mark = None
+        self.opens += 1
+        self.sh.mic.skip_to_end()
+        for r in self.sh.ears:
+            r.skip_to_end()
+        return self.info
+
+    def stop(self) -> None:
+        """Stop the stream and the worker (a worker that does not answer is killed)."""
+        if self._conn is None:
+            return
+        if self.state == "running":
+            try:
+                self._conn.send(("stop",))
+                deadline = time.monotonic() + 5.0
+                while time.monotonic() < deadline:
+                    m = self._wait(deadline - time.monotonic())
+                    if m is None or m[0] in ("stopped", "lost"):
+                        break
+            except (OSError, EOFError):
+                pass
+        self._kill()
+        if self.state == "running":
+            self.state = "stopped"
+
+    def reopen(self) -> dict:
+        """Open a new stream after a device loss or a stop (the telemetry starts again)."""
+        self.stop()
+        self.state = "stopped"
+        return self.start()
+
+    def _kill(self) -> None:
+        if self._proc is not None:
+            try:
+                self._proc.wait(timeout=3.0)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait(timeout=3.0)
+            self._proc = None
+        if self._thread is not None:
+            self._thread.join(timeout=3.0)
+            self._thread = None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def _wait(self, timeout: float):
+        """The worker's next message, or None after ``timeout`` s or when the worker died without one."""
+        deadline = time.monotonic() + max(timeout, 0.0)
+        while True:
+            try:
+                if self._conn.poll(min(0.05, max(deadline - time.monotonic(), 0.0))):
+                    return self._conn.recv()
+            except (EOFError, OSError):
+                return None
+            if self._proc is not None and self._proc.poll() is not None and not self._conn.poll(0):
+                return None
+            if time.monotonic() >= deadline:
+                return None
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    # --- per frame ----------------------------------------------------------------------------------------------
+    def set_poses(self, head, robots=(), sources=None, gains=None, doors=None, hands=None, sidetone=None,
+                  t: float | None = None) -> None:
+        """Hand one frame of poses to the audio side (never blocks). head: (x, y, z, yaw[, pitch]); robots:
+        (x, y, z, yaw) each; sources: (x, y, z) each (default: where they were set up); doors: open fractions."""
+        sc = self.scene
+        v = self.pose_layout.frame(
+            time.monotonic() - self._t0 if t is None else t, head, hands=hands, robots=robots,
+            sources=[s.position for s in sc.sources] if sources is None else sources,
+            gains=[s.gain for s in sc.sources] if gains is None else gains,
+            doors=self._door_values if doors is None else doors,
+            sidetone=self.cfg.sidetone if sidetone is None else sidetone)
+        self._door_values = v[self.pose_layout.DOORS].copy()
+        if self.state == "running":
+            self.sh.poses.write(v)
+
+    def read_ears(self, listener: int = 0, max_frames: int | None = None) -> np.ndarray:
+        """(2, n) float32 heard by listener 0 (the user: exactly what was sent to the output) or a robot (1..)
+        since the last call."""
+        return self.sh.ears[listener].read(max_frames)
+
+    def read_mic(self, max_frames: int | None = None) -> np.ndarray:
+        """(n,) float32 microphone samples since the last call."""
+        return self.sh.mic.read(max_frames)[0]
+
+    def poll(self) -> list[str]:
+        """New problems since the last call (callback errors, device loss, a dead worker), as one-line messages.
+        The audio side never raises into the application: this is where it learns of them."""
+        new = []
+        if self._conn is not None and self.state == "running":
+            try:
+                while self._conn.poll(0):
+                    m = self._conn.recv()
+                    if m[0] == "lost":
+                        self.state = "lost"
+                        new.append(f"audio device lost: {m[1]}; the application goes on without sound, "
+                                   f"call reopen() (or restart the audio server) to resume")
+            except (EOFError, OSError):
+                pass
+            if self.state == "running" and self._proc is not None and self._proc.poll() is not None:
+                self.state = "lost"
+                new.append(f"the audio worker exited (code {self._proc.returncode}); call reopen() to resume")
+        if hasattr(self, "sh"):
+            n = int(self.sh.tele[C.ERRORS])
+            if n > self._errors_seen:
+                new.append(f"audio callback error ({n - self._errors_seen} block(s) played silence): "
+                           f"{self.sh.error_text()}")
+                self._errors_seen = n
+        self.events += new
+        return new
+
+    def check(self) -> None:
+        """Raise the first new problem as an error (for commands that must not go on without audio)."""
+        for e in self.poll():
+            raise (E.DeviceError if "lost" in e or "exited" in e else E.AudioCallbackError)(e)
+
+    def inject_faults(self, blocks: int = 1) -> None:
+        """Test hook: the next ``blocks`` callbacks raise inside their body."""
+        self.sh.tele[C.FAULTS] = blocks
+
+    def mark(self) -> None:
+        """Start a measurement window: :meth:`telemetry` counts from here."""
+        self._mark = self.sh.tele.copy()
+
+    def wait_callbacks(self, n: int, timeout: float = 10.0) -> int:
+        """Wait until ``n`` more callbacks have run (or the timeout); returns how many did."""
+        c0 = int(self.sh.tele[C.CALLBACKS])
+        deadline = time.monotonic() + timeout
+        while int(self.sh.tele[C.CALLBACKS]) - c0 < n and time.monotonic() < deadline and self.state == "running":
+            time.sleep(0.005)
+            self.poll()
+        return int(self.sh.tele[C.CALLBACKS]) - c0
+
+    def telemetry(self) -> dict:
+        """Callback count and duration (median, p99, max), xruns from PortAudio's status flags, reported latency,
+        callback errors, pose frames received; counted since :meth:`mark` (or the start)."""
+        t, f = self.sh.tele.copy(), self.sh.telef
+        m = getattr(self, "_mark", None)
+        if m is not None:
+            for k in (C.CALLBACKS, C.XRUNS, C.IN_OVERFLOW, C.OUT_UNDERFLOW, C.ERRORS, C.POSE_FRAMES, C.POSE_TORN):
+                t[k] -= m[k]
+        n = int(self.sh.durations.head[0])
+        first = max(n - min(int(t[C.CALLBACKS]), C.DURATIONS), 0)
+        idx = np.arange(first, n) % C.DURATIONS
+        d = self.sh.durations.data[0, idx].astype(np.float64) * 1000
+        block_ms = 1000 * self.cfg.block / self.cfg.sample_rate
+        return {
+            "state": self.state, "callbacks": int(t[C.CALLBACKS]), "frames": int(t[C.FRAMES]),
+            "xruns": int(t[C.XRUNS]), "input_overflows": int(t[C.IN_OVERFLOW]),
+            "output_underflows": int(t[C.OUT_UNDERFLOW]), "callback_errors": int(t[C.ERRORS]),
+            "block_ms": round(block_ms, 3),
+            "callback_ms": {"median": round(float(np.median(d)), 3) if d.size else None,
+                            "p99": round(float(np.percentile(d, 99)), 3) if d.size else None,
+                            "max": round(float(d.max()), 3) if d.size else None},
+            "callback_load_p99": round(float(np.percentile(d, 99)) / block_ms, 3) if d.size else None,
+            "reported_latency_ms": {"input": round(1000 * f[C.LAT_IN], 3), "output": round(1000 * f[C.LAT_OUT], 3)},
+            "pose_frames": int(t[C.POSE_FRAMES]), "pose_reads_torn": int(t[C.POSE_TORN]),
+        }
+
+
+def _run_worker(*args) -> None:
+    from app.audio_rt.worker import run
+
+    run(*args)

@@ -1,0 +1,208 @@
+"""Round-trip latency through a real audio server: our output wired back to our input, measured by correlation.
+
+With JACK, the stream's client gets a unique name (``sonicverse-<pid>``) and its first output port is connected to
+its first input port (the hardware capture ports are disconnected from it). With any other host API the test
+assumes a physical loopback cable from output 1 to input 1.
+
+The output carries, on top of the rendered scene, a 4096-sample white-noise burst every half second. The user's
+ring holds exactly what was sent to the device and the microphone ring what came back, both indexed by the same
+callback frame counter, so the lag of each burst's correlation peak is the round trip in samples.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import shutil
+import subprocess
+import time
+
+import numpy as np
+
+from sonicverse_core.errors import DependencyError, DeviceError
+
+_client_name = None  # PortAudio keeps the pointer: the bytes must outlive the stream
+
+
+def name_jack_client(name: str) -> None:
+    """Name the JACK client of the streams this process opens (PortAudio re-initialised to take it)."""
+    global _client_name
+    import sounddevice as sd
+
+    _client_name = name.encode()[:60]
+    try:
+        lib = ctypes.CDLL(sd._libname)
+        lib.PaJack_SetClientName(ctypes.c_char_p(_client_name))
+    except (OSError, AttributeError):  # a PortAudio without JACK support: nothing to name
+        return
+    sd._terminate()
+    sd._initialize()
+
+
+def _jack(*args: str) -> str:
+    exe = shutil.which(args[0])
+    if exe is None:
+        raise DependencyError(f"'{args[0]}' not found: install the Debian package jackd2 (scripts/install-system.sh)")
+    p = subprocess.run([exe, *args[1:]], capture_output=True, text=True, timeout=10)
+    if p.returncode != 0 and args[0] != "jack_disconnect":
+        raise DeviceError(f"{' '.join(args)} failed: {(p.stderr or p.stdout).strip().splitlines()[-1:]}")
+    return p.stdout
+
+
+def jack_connections() -> dict[str, list[str]]:
+    """port -> ports it is connected to (from jack_lsp -c)."""
+    out, cur = {}, None
+    for line in _jack("jack_lsp", "-c").splitlines():
+        if line.startswith((" ", "\t")):
+            out.setdefault(cur, []).append(line.strip())
+        elif line.strip():
+            cur = line.strip()
+            out.setdefault(cur, [])
+    return out
+
+
+def connect_loopback(client: str) -> tuple[str, str]:
+    """Wire ``client``'s first output to its first input, and nothing else into that input."""
+    conns = jack_connections()
+    outs = sorted(p for p in conns if p.startswith(client + ":out"))
+    ins = sorted(p for p in conns if p.startswith(client + ":in"))
+    if not outs or not ins:
+        raise DeviceError(f"JACK client '{client}' has no ports to loop back (ports: {sorted(conns)[:8]})")
+    for port in ins:
+        for other in conns[port]:
+            _jack("jack_disconnect", other, port)
+    _jack("jack_connect", outs[0], ins[0])
+    return outs[0], ins[0]
+
+
+def burst_lags(sent: np.ndarray, received: np.ndarray, first_frame: int, period: int, burst: int = 4096,
+               max_lag: int = 24000) -> np.ndarray:
+    """Lag (samples) of each test burst (sent at stream frames k * period) between what was sent and what came
+    back; both arrays start at stream frame ``first_frame``. A burst without a clear correlation peak gives NaN."""
+    n = min(len(sent), len(received))
+    sent, received = sent[:n].astype(np.float64), received[:n].astype(np.float64)
+    nfft = 1 << int(np.ceil(np.log2(burst + max_lag)))
+    lags = []
+    s = (-first_frame) % period
+    while s + burst + max_lag <= n:
+        x = np.fft.rfft(sent[s:s + burst], nfft)
+        y = np.fft.rfft(received[s:s + burst + max_lag], nfft)
+        c = np.abs(np.fft.irfft(y * np.conj(x), nfft)[:max_lag])
+        k = int(np.argmax(c))
+        lags.append(k if c[k] > 4 * np.median(c) + 1e-12 else np.nan)
+        s += period
+    return np.array(lags, float)
+
+
+def loopback_client_name() -> str:
+    return f"sonicverse-{os.getpid()}"
+
+
+def random_sources(spec: str | None, n: int, seed: int = 0, gain: float = 0.05):
+    """n sound-bank sources on random navigable points of the scene (a 6 m circle in free field)."""
+    from app.audio_rt.config import SourceSpec
+    from assets_manifest import soundbank
+
+    rng = np.random.default_rng(seed)
+    if spec is None:
+        a = rng.uniform(0, 2 * np.pi, n)
+        pts = np.stack([3 * np.cos(a), 3 * np.sin(a)], 1)
+        head = (0.0, 0.0, 1.6, 0.0, 0.0)
+    else:
+        from sonicverse_core.geometry.navgrid import NavGrid
+        from sonicverse_core.scene.spec import load_scene
+
+        scene = load_scene(spec)
+        pts = NavGrid(scene).sample(rng, n + 1)
+        head = (float(pts[-1, 0]), float(pts[-1, 1]), scene.floor_z + 1.6, 0.0, 0.0)
+    cats = soundbank.CATEGORIES
+    srcs = [SourceSpec(f"{cats[i % len(cats)]}/{i % 3}", (float(pts[i, 0]), float(pts[i, 1]), 1.0), gain)
+            for i in range(n)]
+    return srcs, head
+
+
+def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "builtin:apartment",
+                  mode: str = "process", load: str = "none", robots: int = 1, device=None,
+                  sample_rate: int = 48000, block: int = 256, view: int = 512, seed: int = 0,
+                  progress=None) -> dict:
+    """Open the duplex stream with the scene, wire its output to its input, run for ``seconds`` while the frame
+    loop hands poses at frame rate (load='frames': it also renders stereo views as fast as it can), and measure
+    round trip, xruns and callback timing."""
+    from app.audio_rt.config import AudioConfig, AudioScene
+    from app.audio_rt.engine import AudioEngine
+    from sonicverse_core.errors import ConfigError
+
+    if not (0.5 <= seconds <= 3600) or not (0 <= sources <= 1024) or load not in ("none", "frames"):
+        raise ConfigError("--seconds must be 0.5-3600, --sources 0-1024, --load none or frames")
+    srcs, head = random_sources(spec, sources, seed)
+    robo = [(head[0] + 1.0, head[1], 0.4, 180.0)] * robots
+    cfg = AudioConfig(device=device, sample_rate=sample_rate, block=block, mode=mode, test_signal=True,
+                      ring_seconds=4.0)
+    eng = AudioEngine(cfg, AudioScene(spec, sources=srcs, robots=robo, head=head))
+    vis = None
+    if load == "frames":
+        from app.scene.visual import VisualScene
+        from sonicverse_core.scene.spec import load_scene
+
+        vis = VisualScene(load_scene(spec) if spec else _empty_scene(), view, view)
+        vis.render_stereo(head[:4])  # compile shaders before the clock starts
+    info = eng.start()
+    try:
+        client = info.get("jack_client")
+        wired = connect_loopback(client) if client else ("output 1", "input 1 (cable)")
+        eng.wait_callbacks(50)  # the JACK graph change itself may cost one cycle: start counting after it
+        eng.mark()
+        mic_ring, out_ring = eng.sh.mic, eng.sh.ears[0]
+        first = min(int(mic_ring.head[0]), int(out_ring.head[0]))
+        mic_ring.read_pos = out_ring.read_pos = first
+        sent, back, frames = [], [], []
+        t0 = time.perf_counter()
+        t = 0.0
+        while t < seconds:
+            yaw = 30.0 * t
+            h = (head[0] + 0.3 * np.sin(0.5 * t), head[1] + 0.3 * np.cos(0.5 * t), head[2], yaw, 0.0)
+            eng.set_poses(h, robots=robo, t=t)
+            if vis is not None:
+                vis.render_stereo(h[:4])
+            else:
+                time.sleep(1 / 90)  # a frame loop paced at 90 Hz that renders nothing
+            sent.append(out_ring.read()[0])
+            back.append(mic_ring.read()[0])
+            for r in eng.sh.ears[1:]:
+                r.skip_to_end()
+            for e in eng.poll():
+                if progress:
+                    progress(e)
+            t1 = time.perf_counter()
+            frames.append(t1 - t0 - t)
+            t = t1 - t0
+        tele = eng.telemetry()
+    finally:
+        eng.stop()
+        if vis is not None:
+            vis.close()
+    period = int(0.5 * sample_rate) // block * block  # AudioCore's test-burst period
+    lags = burst_lags(np.concatenate(sent), np.concatenate(back), first, period)
+    ok = lags[np.isfinite(lags)]
+    fr = np.array(frames[1:]) * 1000
+    block_ms = 1000 * block / sample_rate
+    return {
+        "bench": "audio-loopback", "mode": mode, "load": load, "scene": spec, "sources": sources,
+        "robots": robots, "seconds": round(t, 2), "device": info["output_device"], "hostapi": info["hostapi"],
+        "wired": list(wired), "sample_rate": sample_rate, "block": block, "block_ms": round(block_ms, 3),
+        "round_trip_ms": round(float(np.median(ok)) * 1000 / sample_rate, 3) if ok.size else None,
+        "round_trip_ms_max": round(float(np.max(ok)) * 1000 / sample_rate, 3) if ok.size else None,
+        "round_trip_bursts": int(ok.size), "round_trip_missed": int(lags.size - ok.size),
+        "round_trip_periods": round(float(np.median(ok)) / block, 3) if ok.size else None,
+        "xruns": tele["xruns"], "callbacks": tele["callbacks"], "callback_errors": tele["callback_errors"],
+        "callback_p99_ms": tele["callback_ms"]["p99"], "callback_ms": tele["callback_ms"],
+        "reported_latency_ms": tele["reported_latency_ms"],
+        "frames": len(fr), "frame_ms_p50": round(float(np.median(fr)), 2) if fr.size else None,
+        "frame_ms_p99": round(float(np.percentile(fr, 99)), 2) if fr.size else None,
+        "view": [2, view, view] if load == "frames" else None, "subsystems": info["subsystems"],
+    }
+
+
+def _empty_scene():
+    from sonicverse_core.scene.spec import load_scene
+
+    return load_scene("shoebox:8x8x3")

@@ -1,0 +1,143 @@
+"""The audio side's main: check the devices, build the renderer, warm it up, open the duplex stream, supervise it.
+
+Runs as the target of a spawned process (mode 'process') or of a thread (mode 'thread'). It talks to the main side
+through a pipe (start result, stop, device lost) and shares everything per-block through the shared block.
+
+When the device disappears (a JACK server stopped, a USB headset unplugged), PortAudio's stream stops calling back
+and can neither be stopped nor closed safely: Pa_StopStream waits on a thread that is gone and Pa_CloseStream
+asserts (measured with JACK: the process aborts). So the worker reports the loss and its process exits at once
+without touching the stream; the application is in another process and stays up, and a new stream opens in a new
+process. In thread mode the dead stream is abandoned instead.
+"""
+from __future__ import annotations
+
+import gc
+import os
+import time
+
+from app.audio_rt import config as C
+
+
+def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None) -> None:
+    """Worker entry point (``shared_buf`` is given in thread mode, ``shm_path`` in process mode)."""
+    from app.audio_rt.core import AudioCore, Shared, shared_layout
+    from app.audio_rt.poses import PoseLayout
+    from app.audio_rt.shared import SharedBlock
+    from sonicverse_core.errors import DeviceError, SonicverseError
+
+    in_thread = shared_buf is not None
+    try:
+        pose_layout = PoseLayout(len(scene_setup.robots), len(scene_setup.sources), len(scene_setup.doors))
+        n_listeners = 1 + len(scene_setup.robots)
+        layout = shared_layout(cfg, n_listeners, pose_layout)
+        buf = shared_buf if in_thread else SharedBlock(layout.size, shm_path, create=False).buf
+        sh = Shared(layout, buf, n_listeners)
+        sh.tele[C.PID] = os.getpid()
+    except Exception as exc:  # noqa: BLE001
+        conn.send(("error", "ConfigError", f"audio worker could not start: {exc}"))
+        return
+    try:
+        import sounddevice as sd
+
+        from app.audio_rt.devices import check
+        from app.audio_rt.loopback import name_jack_client
+
+        client = f"sonicverse-{os.getpid()}"
+        name_jack_client(client)
+
+        out_dev, in_dev = check(cfg)
+        t0 = time.perf_counter()
+        core = AudioCore(cfg, scene_setup, sh, pose_layout)
+        core.warm_up()
+        warm = time.perf_counter() - t0
+        channels = (cfg.mic_channel + 1, 2) if in_dev is not None else 2
+        device = (in_dev["index"], out_dev["index"]) if in_dev is not None else out_dev["index"]
+        kind = sd.Stream if in_dev is not None else sd.OutputStream
+        cb = core.callback if in_dev is not None else (lambda o, f, t, s: core.callback(core.zero_in, o, f, t, s))
+        if in_dev is None:
+            import numpy as np
+
+            core.zero_in = np.zeros((cfg.block, 1), np.float32)
+        stream = kind(device=device, samplerate=cfg.sample_rate, blocksize=cfg.block, channels=channels,
+                      dtype="float32", latency=cfg.latency, callback=cb)
+        lat = stream.latency if isinstance(stream.latency, tuple) else (0.0, stream.latency)
+        sh.telef[C.LAT_IN], sh.telef[C.LAT_OUT] = lat
+        sh.telef[C.SAMPLE_RATE] = stream.samplerate
+        if not in_thread:  # nothing in this process allocates cycles from now on: no collector pauses
+            gc.collect()
+            gc.freeze()
+            gc.disable()
+        stream.start()
+        sh.tele[C.STATE] = C.RUNNING
+    except SonicverseError as exc:
+        sh.tele[C.STATE] = C.FAILED
+        conn.send(("error", type(exc).__name__, str(exc)))
+        return
+    except Exception as exc:  # noqa: BLE001 - PortAudioError and anything else: report, never hang the caller
+        sh.tele[C.STATE] = C.FAILED
+        conn.send(("error", DeviceError.__name__, f"cannot open the audio stream: {str(exc).splitlines()[0]}"))
+        return
+    conn.send(("ready", {"output_device": out_dev["name"], "input_device": in_dev["name"] if in_dev else None,
+                         "hostapi": out_dev["hostapi"], "sample_rate": stream.samplerate, "block": cfg.block,
+                         "latency_in_s": lat[0], "latency_out_s": lat[1], "warmup_s": round(warm, 3),
+                         "subsystems": core.r.subsystems, "doors": core.doors, "mode": cfg.mode,
+                         "pid": os.getpid(), "jack_client": client if "JACK" in out_dev["hostapi"] else None}))
+    if not in_thread:
+        _realtime_supervisor()
+        import sys
+
+        sys.setswitchinterval(0.0005)  # the callback gets the GIL back within 0.5 ms after a GIL-free kernel
+    last_count, last_change = -1, time.monotonic()
+    stall = max(0.5, 50 * cfg.block / cfg.sample_rate)
+    while True:
+        if conn.poll(0.05):
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):  # the application went away: stop quietly
+                msg = ("stop",)
+            if msg[0] == "stop":
+                stream.stop()
+                stream.close()
+                sh.tele[C.STATE] = C.STOPPED
+                try:
+                    conn.send(("stopped",))
+                except OSError:
+                    pass
+                return
+        count = int(sh.tele[C.CALLBACKS])
+        now = time.monotonic()
+        if count != last_count:
+            last_count, last_change = count, now
+        why = None
+        if not stream.active:
+            why = "the audio device stopped the stream (device disconnected or audio server shut down)"
+        elif now - last_change > stall:
+            why = f"the audio device stopped calling back for {now - last_change:.1f} s (device gone or stalled)"
+        if why is not None:
+            sh.tele[C.STATE] = C.LOST
+            conn.send(("lost", why))
+            if in_thread:
+                return  # the stream is abandoned: stopping or closing it would hang or abort
+            os._exit(3)
+
+
+
+def _realtime_supervisor() -> None:
+    """Run this (supervising) thread at a real-time priority below the audio callback's, where allowed: it holds
+    the GIL for microseconds every 50 ms, and a time-shared thread preempted while holding it would stall the
+    callback (priority inversion) when the machine is loaded."""
+    try:
+        prio = max(1, min(4, os.sched_get_priority_max(os.SCHED_FIFO)))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except (OSError, AttributeError):
+        pass
+
+
+def main() -> None:
+    """Process entry: ``python -c 'import app.audio_rt.worker as w; w.main()' FD`` (FD: a socket to the engine)."""
+    import sys
+    from multiprocessing.connection import Connection
+
+    conn = Connection(int(sys.argv[1]))
+    cfg, scene_setup, path = conn.recv()
+    run(conn, cfg, scene_setup, path)

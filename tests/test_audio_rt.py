@@ -1,0 +1,242 @@
+"""Real-time audio pipeline: lock-free structures, pose interpolation, and the duplex stream on a real clocked
+JACK server (dummy backend) with our output wired to our input."""
+import json
+
+import numpy as np
+import pytest
+
+from app.audio_rt.config import AudioConfig, AudioScene, SourceSpec
+from app.audio_rt.poses import PoseInterpolator, PoseLayout, mouth
+from app.audio_rt.shared import Layout, Ring, SeqLock, SharedBlock
+from sonicverse_core.errors import ConfigError, DeviceError, PoseError
+
+FS, B = 48000, 256
+SCENE = "shoebox:6x5x3"
+
+
+# --- lock-free structures ---------------------------------------------------------------------------------------
+def _views(**entries):
+    L = Layout()
+    for k, (shape, dt) in entries.items():
+        L.add(k, shape, dt)
+    return L.views(SharedBlock(L.size, private=True).buf)
+
+
+def test_ring_wraps_in_order_and_counts_what_a_slow_reader_lost():
+    v = _views(d=((2, 1000), np.float32), h=(1, np.int64))
+    w, r = Ring(v["d"], v["h"]), Ring(v["d"], v["h"])
+    x = np.arange(2 * 2600, dtype=np.float32).reshape(2, 2600)
+    for i in range(0, 700, 100):
+        w.write(x[:, i:i + 100])
+    assert np.array_equal(r.read(), x[:, :700])
+    for i in range(700, 2600, 100):  # 1900 more frames: the reader is 900 frames over the capacity
+        w.write(x[:, i:i + 100])
+    got = r.read()
+    assert r.lost == 900 and np.array_equal(got, x[:, 1600:2600])
+
+
+def test_ring_shared_between_two_mappings_of_one_block():
+    L = Layout()
+    L.add("d", (1, 64), np.float32)
+    L.add("h", 1, np.int64)
+    a = SharedBlock(L.size)
+    b = SharedBlock(L.size, a.path, create=False)
+    a.unlink()  # both keep their mapping
+    wa, rb = L.views(a.buf), L.views(b.buf)
+    reader = Ring(rb["d"], rb["h"])  # a reader starts at the current head
+    Ring(wa["d"], wa["h"]).write(np.ones((1, 10), np.float32))
+    assert np.array_equal(reader.read(), np.ones((1, 10)))
+
+
+def test_seqlock_never_returns_a_torn_frame():
+    v = _views(s=(1, np.int64), d=(8, np.float64))
+    w, r = SeqLock(v["s"], v["d"]), SeqLock(v["s"], v["d"])
+    out = np.zeros(8)
+    w.write(np.full(8, 1.0))
+    assert r.read_into(out) == 1 and np.all(out == 1)
+    assert r.read_into(out) == 0  # nothing new
+    v["s"][0] += 1  # a writer stopped half-way: odd sequence, half-written payload
+    v["d"][:4] = 2.0
+    assert r.read_into(out) == -1 and np.all(out == 1)  # the previous frame is kept
+    v["s"][0] += 1
+    assert r.read_into(out) == 1 and np.all(out[:4] == 2) and np.all(out[4:] == 1)
+
+
+# --- poses ------------------------------------------------------------------------------------------------------
+def test_pose_frame_rejects_nan_and_bad_counts():
+    L = PoseLayout(n_robots=1, n_sources=2, n_doors=1)
+    ok = L.frame(0.0, (1, 2, 1.6, 90), robots=[(0, 0, 0.4, 0)], sources=[(1, 1, 1), (2, 2, 1)], doors=[0.5])
+    assert ok.shape == (L.size,) and ok[L.DOORS][0] == 0.5
+    with pytest.raises(PoseError, match="not finite"):
+        L.frame(0.0, (1, np.nan, 1.6, 90), robots=[(0, 0, 0.4, 0)], sources=[(1, 1, 1), (2, 2, 1)], doors=[0])
+    with pytest.raises(PoseError, match="robot"):
+        L.frame(0.0, (1, 2, 1.6, 90), robots=[], sources=[(1, 1, 1), (2, 2, 1)], doors=[0])
+    with pytest.raises(PoseError, match="door"):
+        L.frame(0.0, (1, 2, 1.6, 90), robots=[(0, 0, 0.4, 0)], sources=[(1, 1, 1), (2, 2, 1)], doors=[1.5])
+
+
+def test_interpolation_ramps_over_the_frame_interval_the_short_way_round_and_jumps_on_teleport():
+    L = PoseLayout()
+    ip = PoseInterpolator(L)
+    blk = B / FS
+    ip.new_frame(L.frame(0.0, (0, 0, 1.6, 350)))
+    for k in range(1, 4):  # frames at 90 Hz teach it the interval
+        ip.new_frame(L.frame(k / 90, (0, 0, 1.6, 350)))
+        for _ in range(2):
+            ip.advance(blk)
+    ip.new_frame(L.frame(4 / 90, (0.05, 0, 1.6, 10)))  # +5 cm and 20 degrees through north
+    seen = [ip.advance(blk)[L.HEAD].copy() for _ in range(3)]
+    assert 0 < seen[0][0] < seen[1][0] <= 0.05  # moves in steps, not at once
+    assert np.isclose(seen[-1][0], 0.05) and np.isclose(seen[-1][3] % 360, 10)
+    assert all(350 <= s[3] <= 370 for s in seen)  # never swept backwards through 180
+    ip.new_frame(L.frame(5 / 90, (5.0, 0, 1.6, 10)))  # 5 m in one frame: a teleport
+    assert np.isclose(ip.advance(blk)[1], 5.0)
+
+
+def test_mouth_is_in_front_of_and_below_the_ears():
+    m, fwd = mouth(np.array([1.0, 2.0, 1.6, 90.0, 0.0]))
+    assert np.allclose(fwd, [0, 1, 0], atol=1e-12) and np.isclose(m[1] - 2.0, 0.08) and m[2] < 1.6
+
+
+def test_listener_that_excludes_a_source_hears_none_of_it():
+    from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+
+    r = AcousticRenderer(None, RenderConfig(late_reverb=False, early_reflections=False))
+    s = r.add_source(np.random.default_rng(0).normal(size=FS).astype(np.float32) * 0.1, (2, 0, 1.6))
+    r.add_listener((0, 0, 1.6))
+    deaf = r.add_listener((0, 0, 1.6), exclude=[s])
+    a, b = r.render(0.2)
+    assert np.sqrt(np.mean(a ** 2)) > 1e-3 and np.max(np.abs(b)) == 0.0
+    r.set_heard(deaf, s, True)
+    assert np.max(np.abs(r.render(0.1)[1])) > 1e-3
+
+
+def test_config_rejects_bad_settings():
+    with pytest.raises(ConfigError):
+        AudioConfig(block=300)
+    with pytest.raises(ConfigError):
+        AudioConfig(mode="fiber")
+    with pytest.raises(ConfigError):
+        AudioConfig(sample_rate=4000)
+
+
+# --- the stream on a real clocked server ------------------------------------------------------------------------
+def _engine(**kw):
+    from app.audio_rt.engine import AudioEngine
+
+    scene = AudioScene(SCENE, sources=[SourceSpec("sofa/0", (4.0, 3.0, 1.2), 0.1)], robots=[(1.5, 1.0, 0.4, 0.0)],
+                       head=(2.0, 2.5, 1.6, 0.0, 0.0))
+    return AudioEngine(AudioConfig(**{"test_signal": True, **kw}), scene)
+
+
+@pytest.fixture(scope="module")
+def running(jack):
+    """One engine for the module's stream tests: output wired to input."""
+    from app.audio_rt.loopback import connect_loopback
+
+    eng = _engine()
+    info = eng.start()
+    connect_loopback(info["jack_client"])
+    assert eng.wait_callbacks(50) >= 50
+    yield eng
+    eng.stop()
+
+
+def test_round_trip_is_two_server_periods_and_the_mic_reaches_the_robot(running):
+    from app.audio_rt.loopback import burst_lags
+
+    eng = running
+    mic, out, robot = eng.sh.mic, eng.sh.ears[0], eng.sh.ears[1]
+    first = min(int(mic.head[0]), int(out.head[0]))
+    mic.read_pos = out.read_pos = robot.read_pos = first
+    sent, back, heard = [], [], []
+    period = int(0.5 * FS) // B * B
+    while sum(len(x) for x in sent) < 3 * period:  # three test bursts
+        eng.wait_callbacks(20)
+        eng.set_poses((2.0, 2.5, 1.6, 0.0, 0.0), robots=[(1.5, 1.0, 0.4, 0.0)])
+        sent.append(out.read()[0])
+        back.append(mic.read()[0])
+        heard.append(robot.read())
+    sent, back = np.concatenate(sent), np.concatenate(back)
+    lags = burst_lags(sent, back, first, period)
+    assert len(lags) >= 2 and np.all(np.isfinite(lags))
+    rt_ms = np.max(lags) / FS * 1000
+    assert rt_ms <= 2 * B / FS * 1000 + 1.0, rt_ms  # two server periods + 1 ms: nothing added by us
+    assert np.array_equal(back[512:], sent[:-512]) or np.max(lags) == np.min(lags)
+    heard = np.concatenate(heard, axis=1)
+    assert np.all(np.isfinite(heard)) and np.max(np.abs(heard)) <= 1.0 and np.sqrt(np.mean(heard ** 2)) > 1e-4
+    tele = eng.telemetry()
+    assert tele["callbacks"] > 0 and tele["reported_latency_ms"]["output"] > 0
+    assert tele["callback_ms"]["median"] < tele["block_ms"]
+
+
+def test_poses_arrive_in_the_audio_process(running):
+    n0 = running.telemetry()["pose_frames"]
+    for k in range(5):
+        running.set_poses((2.0, 2.5, 1.6, 10.0 * k, 0.0), robots=[(1.5, 1.0, 0.4, 0.0)])
+        running.wait_callbacks(2)
+    assert running.telemetry()["pose_frames"] >= n0 + 3
+    with pytest.raises(PoseError):
+        running.set_poses((2.0, np.inf, 1.6, 0.0, 0.0), robots=[(1.5, 1.0, 0.4, 0.0)])
+
+
+def test_callback_exception_plays_silence_is_reported_and_the_stream_goes_on(running):
+    eng = running
+    eng.poll()
+    seen = len(eng.events)
+    eng.inject_faults(3)
+    eng.wait_callbacks(10)  # polls too: every reported problem is kept in eng.events
+    eng.poll()
+    events = eng.events[seen:]
+    assert events and all("injected fault" in e for e in events), events
+    assert sum(int(e.split("(")[1].split(" ")[0]) for e in events) == 3  # blocks that played silence
+    n = eng.telemetry()["callbacks"]
+    assert eng.wait_callbacks(10) == 10 and eng.state == "running" and eng.telemetry()["callbacks"] >= n + 10
+
+
+def test_devices_that_do_not_exist_or_cannot_do_it_give_one_clear_error(jack):
+    with pytest.raises(DeviceError, match="no output device 'no-such-card'.*available"):
+        _engine(device="no-such-card").start()
+    with pytest.raises(DeviceError, match="does not support 44100 Hz"):
+        _engine(sample_rate=44100).start()
+
+
+def test_mono_output_device_is_refused(private_jack):
+    private_jack(playback=1)
+    with pytest.raises(DeviceError, match="1 output channel; binaural audio needs 2"):
+        _engine().start()
+
+
+def test_device_vanishing_mid_stream_is_reported_and_the_stream_reopens(private_jack):
+    srv = private_jack()
+    eng = _engine()
+    eng.start()
+    try:
+        assert eng.wait_callbacks(20) == 20
+        srv.stop()  # the audio server goes away under the stream
+        seen = len(eng.events)
+        for _ in range(400):  # the worker's supervisor notices within its stall limit
+            eng.poll()
+            if eng.state == "lost":
+                break
+            eng.wait_callbacks(1, timeout=0.05)
+        events = eng.events[seen:]
+        assert eng.state == "lost" and any("lost" in e or "exited" in e for e in events), events
+        srv.start()
+        eng.reopen()
+        assert eng.state == "running" and eng.wait_callbacks(20) == 20
+    finally:
+        eng.stop()
+
+
+def test_cli_devices_and_loopback_test(jack, cli):
+    r = cli("audio", "devices", "--json", check_rc=0)
+    devs = json.loads(r.stdout)["devices"]
+    assert any(d["name"] == "system" and d["outputs"] == 2 for d in devs)
+    r = cli("audio", "loopback-test", "--seconds", "2", "--sources", "2", "--scene", SCENE, "--json", check_rc=0)
+    res = json.loads(r.stdout)
+    for k in ("round_trip_ms", "block_ms", "xruns", "callbacks", "callback_p99_ms"):
+        assert k in res
+    assert res["round_trip_ms"] <= 2 * res["block_ms"] + 1.0 and res["callbacks"] > 300
+    r = cli("audio", "loopback-test", "--device", "nope", check_rc=2)
+    assert r.stderr.count("\n") == 1 and "no output device 'nope'" in r.stderr
