@@ -143,6 +143,7 @@ def running(jack):
 
 
 def test_round_trip_is_two_server_periods_and_the_mic_reaches_the_robot(running):
+    from app.audio_rt.core import burst_period
     from app.audio_rt.loopback import burst_lags
 
     eng = running
@@ -150,7 +151,7 @@ def test_round_trip_is_two_server_periods_and_the_mic_reaches_the_robot(running)
     first = min(int(mic.head[0]), int(out.head[0]))
     mic.read_pos = out.read_pos = robot.read_pos = first
     sent, back, heard = [], [], []
-    period = int(0.5 * FS) // B * B
+    period = burst_period(FS, B)
     while sum(len(x) for x in sent) < 3 * period:  # three test bursts
         eng.wait_callbacks(20)
         eng.set_poses((2.0, 2.5, 1.6, 0.0, 0.0), robots=[(1.5, 1.0, 0.4, 0.0)])

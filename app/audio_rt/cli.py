@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from sonicverse_core.errors import ConfigError
+from sonicverse_core.errors import ConfigError, SonicverseError
 
 
 def _device(text):
@@ -111,8 +111,12 @@ def cmd_live(a) -> int:
             for e in eng.poll():
                 print(f"sonicverse: {e}", file=sys.stderr)
             if eng.state == "lost":
-                eng.reopen() if a.reopen else None
-                if eng.state != "running":
+                if not a.reopen:
+                    break
+                try:
+                    eng.reopen()
+                except SonicverseError as exc:  # the device is still gone: stop, keeping what was recorded
+                    print(f"sonicverse: {exc}", file=sys.stderr)
                     break
     finally:
         keys.close()

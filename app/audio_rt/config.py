@@ -11,9 +11,8 @@ from sonicverse_core.errors import ConfigError
 CALLBACKS, XRUNS, IN_OVERFLOW, OUT_UNDERFLOW, ERRORS, STATE, FAULTS, FRAMES, POSE_FRAMES, POSE_TORN, PID, \
     ERROR_SEQ, PRIMING, N_TELE = range(14)
 # float64 slots
-LAT_IN, LAT_OUT, LAST_CALLBACK, SAMPLE_RATE, DSP_P99, N_TELEF = range(6)
-STARTING, RUNNING, STOPPED, FAILED, LOST = range(5)
-STATE_NAMES = ("starting", "running", "stopped", "failed", "lost")
+LAT_IN, LAT_OUT, LAST_CALLBACK, SAMPLE_RATE, N_TELEF = range(5)
+STARTING, RUNNING, STOPPED, FAILED, LOST = range(5)  # the worker's STATE slot
 DURATIONS = 1 << 16  # callback durations kept (about 5.8 min at 48 kHz / 256)
 
 

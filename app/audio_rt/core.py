@@ -20,6 +20,11 @@ from app.audio_rt.shared import Layout, Ring, SeqLock
 ERROR_BYTES = 1024
 
 
+def burst_period(sample_rate: int, block: int) -> int:
+    """Frames between the loopback test's noise bursts: half a second, whole blocks."""
+    return int(0.5 * sample_rate) // block * block
+
+
 def shared_layout(cfg: AudioConfig, n_listeners: int, pose: PoseLayout) -> Layout:
     cap = int(cfg.ring_seconds * cfg.sample_rate)
     L = Layout()
@@ -126,14 +131,13 @@ class AudioCore:
         self.door_change = False
         self.sidetone = cfg.sidetone
         self.mic_block = np.zeros(B, np.float32)
-        self.zero_mic = np.zeros((1, B), np.float32)
+        self.zero_in = np.zeros((B, 1), np.float32)  # the "microphone" of an output-only stream
         self.out_block = np.zeros((2, B), np.float32)
         # loopback test signal: a 4096-sample white-noise burst every half second on the left channel
         self.test = None
         if cfg.test_signal:
             rng = np.random.default_rng(1234)
-            self.test_period = period = int(0.5 * cfg.sample_rate) // B * B
-            self.test = np.zeros(period, np.float32)
+            self.test = np.zeros(burst_period(cfg.sample_rate, B), np.float32)
             self.test[:4096] = 0.25 * rng.uniform(-1, 1, 4096).astype(np.float32)
         self.frames = 0
         self.warmup_blocks = scene_setup.warmup_blocks

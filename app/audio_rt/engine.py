@@ -67,7 +67,9 @@ class AudioEngine:
         self._errors_seen = 0
         if thread:
             parent, child = mp.Pipe()
-            self._thread = threading.Thread(target=_run_worker, name="sonicverse-audio", daemon=True,
+            from app.audio_rt.worker import run
+
+            self._thread = threading.Thread(target=run, name="sonicverse-audio", daemon=True,
                                             args=(child, cfg, self.scene, None, self._block.buf))
             self._thread.start()
         else:
@@ -260,8 +262,3 @@ class AudioEngine:
             "pose_frames": int(t[C.POSE_FRAMES]), "pose_reads_torn": int(t[C.POSE_TORN]),
         }
 
-
-def _run_worker(*args) -> None:
-    from app.audio_rt.worker import run
-
-    run(*args)

@@ -180,7 +180,9 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
         eng.stop()
         if vis is not None:
             vis.close()
-    period = int(0.5 * sample_rate) // block * block  # AudioCore's test-burst period
+    from app.audio_rt.core import burst_period
+
+    period = burst_period(sample_rate, block)
     lags = burst_lags(np.concatenate(sent), np.concatenate(back), first, period)
     ok = lags[np.isfinite(lags)]
     fr = np.array(frames[1:]) * 1000

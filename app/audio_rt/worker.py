@@ -54,10 +54,6 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None) -> None:
         device = (in_dev["index"], out_dev["index"]) if in_dev is not None else out_dev["index"]
         kind = sd.Stream if in_dev is not None else sd.OutputStream
         cb = core.callback if in_dev is not None else (lambda o, f, t, s: core.callback(core.zero_in, o, f, t, s))
-        if in_dev is None:
-            import numpy as np
-
-            core.zero_in = np.zeros((cfg.block, 1), np.float32)
         stream = kind(device=device, samplerate=cfg.sample_rate, blocksize=cfg.block, channels=channels,
                       dtype="float32", latency=cfg.latency, callback=cb)
         lat = stream.latency if isinstance(stream.latency, tuple) else (0.0, stream.latency)

@@ -82,10 +82,9 @@ class Occlusion:
                     old = self._poses[o.name]
                     if not np.array_equal(old, o.pose):
                         for pose in (old, o.pose):
-                            corners = np.array(np.meshgrid(*o.mesh.bounds.T, indexing="ij")).reshape(3, -1).T
-                            w = corners @ pose[:3, :3].T + pose[:3, 3]
-                            lo.append(w.min(0) - 0.01)
-                            hi.append(w.max(0) + 0.01)
+                            b = o.world_bounds(pose)
+                            lo.append(b[0] - 0.01)
+                            hi.append(b[1] + 0.01)
                 self._dirty = (np.array(lo).reshape(-1, 3), np.array(hi).reshape(-1, 3))
             self._poses = {o.name: o.pose.copy() for o in objs}
             self._dirty_version = self.scene.dynamic_version

@@ -92,10 +92,11 @@ class SceneObject:
         m.apply_transform(self.pose)
         return m
 
-    def world_bounds(self) -> np.ndarray:
-        """(2, 3) axis-aligned bounds in world coordinates."""
+    def world_bounds(self, pose: np.ndarray | None = None) -> np.ndarray:
+        """(2, 3) axis-aligned bounds in world coordinates (at ``pose``, default the current one)."""
+        pose = self.pose if pose is None else pose
         corners = trimesh.bounds.corners(self.mesh.bounds)
-        w = corners @ self.pose[:3, :3].T + self.pose[:3, 3]
+        w = corners @ pose[:3, :3].T + pose[:3, 3]
         return np.array([w.min(0), w.max(0)])
 
 
