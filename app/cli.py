@@ -122,6 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
     from app.cli_audio import add_audio_commands
 
     add_audio_commands(sub, bs)
+    from app.cli_tasks import add_task_commands
+
+    add_task_commands(sub, bs)
     return p
 
 

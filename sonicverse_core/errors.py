@@ -41,6 +41,11 @@ class PoseError(SonicverseError):
     """A pose or position that is not finite or lies outside what the scene allows."""
 
 
+class ActionError(SonicverseError):
+    """An agent action that is not finite or has the wrong shape; or a world action that cannot happen now
+    (picking up an object out of reach, putting down where there is no room)."""
+
+
 class DeviceError(SonicverseError):
     """An audio or VR device that does not exist, does not support a setting, or disappeared."""
 

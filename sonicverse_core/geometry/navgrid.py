@@ -77,16 +77,30 @@ class NavGrid:
             floor &= traversable_at(scene, o[:, :2])
         floor = floor.reshape(ny, ss, nx, ss).all(axis=(1, 3))
         floor &= ~self._vertical_obstacles(scene)
+        self._finish(floor)
+
+    def derive(self, blocked: np.ndarray) -> "NavGrid":
+        """A grid over the same floor with the cells in ``blocked`` (bool, grid shape) taken away: how the world
+        adds doors and movable objects to a grid of the fixed structure without casting rays again."""
+        g = object.__new__(NavGrid)
+        g.scene, g.config, g.caster, g.z_floor = self.scene, self.config, self.caster, self.z_floor
+        g.origin, g.shape = self.origin, self.shape
+        g._finish(self.floor & ~blocked)
+        return g
+
+    def _finish(self, floor: np.ndarray) -> None:
+        c = self.config.cell
         self.floor = floor
         edt = ndimage.distance_transform_edt(floor) * c
-        self.navigable = edt >= config.robot_radius + 0.5 * c
+        self.clearance = edt
+        self.navigable = edt >= self.config.robot_radius + 0.5 * c
         self.labels, self.n_components = ndimage.label(self.navigable, structure=np.ones((3, 3)))
         if self.n_components:
             sizes = np.bincount(self.labels.ravel())[1:]
             self.main_label = int(np.argmax(sizes)) + 1
         else:
             self.main_label = 0
-        for arr in (self.floor, self.navigable, self.labels):
+        for arr in (self.floor, self.navigable, self.labels, self.clearance):
             arr.setflags(write=False)
 
     def _vertical_obstacles(self, scene: Scene) -> np.ndarray:
@@ -222,13 +236,20 @@ class NavGrid:
         return int(ids[rows[k], cols[k]]), self.center_of((rows[k], cols[k]))[0]
 
     def distance_field(self, goal_xy) -> np.ndarray:
-        """(ny, nx) geodesic distance (m) from every cell to the goal; inf where unreachable."""
+        """(ny, nx) geodesic distance (m) from every cell to the goal, or to the nearest of several goals (k, 2)
+        (one multi-source Dijkstra; goals are taken at their cells' centres); inf where unreachable."""
         g, ids = self._graph
-        node, center = self._snap(goal_xy)
-        d = dijkstra(g, indices=node)
+        goals = np.atleast_2d(np.asarray(goal_xy, float))[:, :2]
+        snapped = [self._snap(p) for p in goals]
+        nodes = [n for n, _ in snapped]
+        if len(goals) == 1:
+            d = dijkstra(g, indices=nodes[0])
+            d = d + float(np.linalg.norm(snapped[0][1] - goals[0]))
+        else:
+            d = dijkstra(g, indices=nodes, min_only=True)
         out = np.full(self.shape, np.inf)
         nav = ids >= 0
-        out[nav] = d[ids[nav]] + float(np.linalg.norm(center - np.asarray(goal_xy, float)[:2]))
+        out[nav] = d[ids[nav]]
         return out
 
     def geodesic_from_field(self, field: np.ndarray, xy) -> np.ndarray:

@@ -1,0 +1,284 @@
+"""Scripted baselines for the navigation tasks.
+
+Every agent has ``reset(env, obs, info)`` (``env`` is the unwrapped environment; only the oracle looks inside it)
+and ``act(obs, info) -> action``. Randomness comes from the Generator passed in.
+
+* ``random``: uniform continuous wheel velocities; like the paper's baseline it stops automatically at the goal
+  (it is told ``info['at_goal']``; the AudioGoal tasks end there by themselves).
+* ``oracle``: drives the geodesic shortest path (string-pulled) with a pursuit controller; proves the metrics
+  (SR and SPL near 1).
+* ``gan``: in the spirit of Gan et al. (2020): estimates the sound's direction from the interaural time difference
+  (spinning in place to resolve front from back), triangulates the source from bearings taken at different places,
+  builds an occupancy map from depth, and plans on it (Dijkstra over the map) to the estimate.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def _wheels(v: float, w: float, robot) -> np.ndarray:
+    """Normalised wheel velocities for a body velocity v (m/s) and turn rate w (rad/s)."""
+    vl = v - w * robot.wheel_base / 2
+    vr = v + w * robot.wheel_base / 2
+    a = np.array([vl, vr]) / robot.max_speed
+    m = np.max(np.abs(a))
+    return a / m if m > 1 else a
+
+
+def _pursue(pose_xy, yaw_deg, target, robot, dt, slow_within: float = 0.0) -> np.ndarray:
+    d = np.asarray(target, float) - np.asarray(pose_xy, float)
+    dist = float(np.hypot(*d))
+    err = (math.degrees(math.atan2(d[1], d[0])) - yaw_deg + 180.0) % 360.0 - 180.0
+    wmax = math.radians(robot.max_turn_deg)
+    w = max(-wmax, min(wmax, math.radians(err) / dt * 0.9))
+    if abs(err) > 35.0:
+        return _wheels(0.0, w, robot)
+    v = robot.max_speed * max(0.0, math.cos(math.radians(err)))
+    if slow_within > 0:
+        v = min(v, max(dist, 0.05) / dt)
+    return _wheels(v, w, robot)
+
+
+class Agent:
+    name = "agent"
+    stop_dim = False
+
+    def __init__(self, rng: np.random.Generator | None = None):
+        self.rng = rng if rng is not None else np.random.default_rng(0)
+
+    def reset(self, env, obs, info) -> None:
+        self.env = env
+        self.stop_dim = env.action_space.shape[0] == 3
+        self.robot = env.robot
+        self.dt = env.cfg.step_seconds
+
+    def _out(self, wheels, stop: bool = False) -> np.ndarray:
+        wheels = np.clip(np.asarray(wheels, float), -1, 1)
+        if self.stop_dim:
+            return np.array([wheels[0], wheels[1], 1.0 if stop else -1.0], np.float32)
+        return wheels.astype(np.float32)
+
+    def act(self, obs, info) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class RandomAgent(Agent):
+    name = "random"
+
+    def act(self, obs, info):
+        if self.stop_dim and info.get("at_goal"):
+            return self._out([0.0, 0.0], stop=True)
+        return self._out(self.rng.uniform(-1.0, 1.0, 2))
+
+
+class OracleAgent(Agent):
+    """Privileged: reads the world and the goal from the environment."""
+
+    name = "oracle"
+
+    def reset(self, env, obs, info):
+        super().reset(env, obs, info)
+        self._plan()
+
+    def _plan(self):
+        w = self.env.home.world
+        goals = self.env._goals
+        from_robot = w.grid.distance_field(w.pose[:2])
+        g = goals[int(np.argmin(w.grid.geodesic_from_field(from_robot, goals)))]
+        path, length = w.grid.shortest_path(w.pose[:2], g)
+        self.path = path if np.isfinite(length) else np.array([w.pose[:2], g])
+        self.k = 1
+
+    def act(self, obs, info):
+        w = self.env.home.world
+        if info.get("at_goal"):
+            return self._out([0.0, 0.0], stop=True)
+        p = w.pose[:2]
+        while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.15:
+            self.k += 1
+        if w.bumped:
+            self._plan()
+        return self._out(_pursue(p, w.pose[2], self.path[min(self.k, len(self.path) - 1)], self.robot, self.dt,
+                                 slow_within=0.3 if self.k >= len(self.path) - 1 else 0.0))
+
+
+class GanAgent(Agent):
+    """Binaural localisation + depth occupancy map + planner; uses observations only (audio, depth, pose)."""
+
+    name = "gan"
+    CELL = 0.1
+    SIZE = 240  # cells: 24 m x 24 m around the start
+    ITD_MAX = 0.00066  # s: the KEMAR head's largest interaural delay
+
+    def reset(self, env, obs, info):
+        super().reset(env, obs, info)
+        self.sr = env.cfg.sample_rate
+        self.occ = np.zeros((self.SIZE, self.SIZE), np.int16)
+        self.bearings: list[tuple[np.ndarray, float, float]] = []  # (position, world bearing rad, weight)
+        self.goal = None
+        self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+        self.votes = np.zeros(72)
+        self.since_listen = 0
+        self.quiet = 0
+        self.path = None
+        self.k = 0
+        self.cam = env.cfg
+        self._fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
+
+    # --- perception -------------------------------------------------------------------------------------------
+    def _pose(self, obs):
+        x, y, s, c = (float(v) for v in obs["pose"])
+        return np.array([x, y]), math.degrees(math.atan2(s, c))
+
+    def _itd(self, audio: np.ndarray) -> tuple[float, float]:
+        """(interaural delay s, left leads > 0; energy)."""
+        l, r = audio[0].astype(np.float64), audio[1].astype(np.float64)
+        e = float(np.mean(l * l + r * r))
+        if e < 1e-12:
+            return 0.0, 0.0
+        lag = int(math.ceil(self.ITD_MAX * self.sr)) + 1
+        n = len(l)
+        L, R = np.fft.rfft(l, 2 * n), np.fft.rfft(r, 2 * n)
+        cc = np.fft.irfft(R * np.conj(L) / (np.abs(R * np.conj(L)) + 1e-12), 2 * n)  # GCC-PHAT: r lags l by k
+        cc = np.concatenate([cc[-lag:], cc[: lag + 1]])
+        k = int(np.argmax(cc))
+        frac = 0.0
+        if 0 < k < len(cc) - 1:
+            a, b, c = cc[k - 1], cc[k], cc[k + 1]
+            den = a - 2 * b + c
+            frac = 0.5 * (a - c) / den if abs(den) > 1e-12 else 0.0
+        return (k - lag + frac) / self.sr, e
+
+    def _map_depth(self, obs, p, yaw):
+        if "depth" not in obs:
+            return
+        d = obs["depth"][..., 0]
+        H, W = d.shape
+        rows = np.arange(0, H, 4)
+        cols = np.arange(0, W, 4)
+        z = d[np.ix_(rows, cols)]
+        ok = z > 0.1
+        if not np.any(ok):
+            return
+        u = (cols[None, :] - W / 2 + 0.5) / self._fx
+        v = (rows[:, None] - H / 2 + 0.5) / self._fx
+        fwd, left, up = z, -u * z, -v * z
+        height = self.robot.camera_height + up
+        obst = ok & (height > 0.08) & (height < 0.6)
+        a = math.radians(yaw)
+        wx = p[0] + math.cos(a) * fwd - math.sin(a) * left
+        wy = p[1] + math.sin(a) * fwd + math.cos(a) * left
+        idx = self._cell(np.stack([wx[obst], wy[obst]], 1))
+        good = (idx >= 0).all(1) & (idx < self.SIZE).all(1)
+        np.add.at(self.occ, (idx[good, 0], idx[good, 1]), 1)
+
+    def _cell(self, xy):
+        return np.floor(np.asarray(xy) / self.CELL).astype(int) + self.SIZE // 2
+
+    # --- estimation and planning ------------------------------------------------------------------------------
+    def _estimate(self):
+        if not self.bearings:
+            return None
+        P = np.array([b[0] for b in self.bearings])
+        th = np.array([b[1] for b in self.bearings])
+        wgt = np.array([b[2] for b in self.bearings])
+        dirs = np.stack([np.cos(th), np.sin(th)], 1)
+        if len(P) >= 2 and np.ptp(P, axis=0).max() > 0.5:
+            A = np.zeros((2, 2))
+            bvec = np.zeros(2)
+            for p, dvec, w in zip(P, dirs, wgt):
+                M = np.eye(2) - np.outer(dvec, dvec)
+                A += w * M
+                bvec += w * M @ p
+            if np.linalg.cond(A) < 1e3:
+                g = np.linalg.solve(A, bvec)
+                last = P[-1]
+                if np.dot(g - last, dirs[-1]) > 0 and np.linalg.norm(g - last) < 12:
+                    return g
+        return P[-1] + 2.5 * dirs[-1]
+
+    def _plan(self, p):
+        from scipy.ndimage import binary_dilation
+
+        blocked = binary_dilation(self.occ >= 2, iterations=2)
+        s, g = self._cell(p), np.clip(self._cell(self.goal), 0, self.SIZE - 1)
+        blocked[s[0], s[1]] = False
+        blocked[g[0], g[1]] = False
+        path = _grid_path(blocked, tuple(s), tuple(g))
+        if path is None:
+            self.path = np.array([self.goal])
+        else:
+            self.path = (np.array(path, float) - self.SIZE // 2 + 0.5) * self.CELL
+        self.k = min(2, len(self.path) - 1)
+
+    def act(self, obs, info):
+        p, yaw = self._pose(obs)
+        self._map_depth(obs, p, yaw)
+        itd, energy = self._itd(obs["audio"]) if "audio" in obs else (0.0, 0.0)
+        audible = energy > 1e-9
+        self.quiet = 0 if audible else self.quiet + 1
+        if self.spin_left > 0:
+            if audible:
+                lat = math.asin(max(-1.0, min(1.0, itd / self.ITD_MAX)))
+                for cand in (math.radians(yaw) + lat, math.radians(yaw) + math.pi - lat):
+                    b = int(round(math.degrees(cand) / 5.0)) % 72
+                    self.votes[b] += math.sqrt(energy)
+                    self.votes[(b + 1) % 72] += 0.5 * math.sqrt(energy)
+                    self.votes[(b - 1) % 72] += 0.5 * math.sqrt(energy)
+            self.spin_left -= 1
+            if self.spin_left == 0 and self.votes.max() > 0:
+                self.bearings.append((p.copy(), math.radians(5.0 * int(np.argmax(self.votes))),
+                                      float(self.votes.max())))
+                self.goal = self._estimate()
+                self._plan(p)
+                self.since_listen = 0
+            return self._out(_wheels(0.0, math.radians(self.robot.max_turn_deg), self.robot))
+        if self.goal is None:
+            self.goal = p + 2.0 * np.array([math.cos(math.radians(yaw)), math.sin(math.radians(yaw))])
+            self._plan(p)
+        self.since_listen += 1
+        if self.since_listen >= 25 and self.quiet < 5:  # listen again from here
+            self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+            self.votes[:] = 0
+            return self._out([0.0, 0.0])
+        if self.since_listen % 8 == 0 or (obs.get("bump") is not None and obs["bump"][0] > 0):
+            self._plan(p)
+        if np.linalg.norm(self.goal - p) < 0.3:
+            return self._out([0.0, 0.0], stop=True)
+        while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
+            self.k += 1
+        return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt))
+
+
+def _grid_path(blocked: np.ndarray, start, goal):
+    """8-connected shortest path on a boolean grid (Dijkstra via scipy); list of (row, col) or None."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    free = ~blocked
+    ny, nx = blocked.shape
+    ids = np.arange(ny * nx).reshape(ny, nx)
+    src, dst, w = [], [], []
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        r0, r1 = max(0, -dy), ny - max(0, dy)
+        c0, c1 = max(0, -dx), nx - max(0, dx)
+        m = free[r0:r1, c0:c1] & free[r0 + dy:r1 + dy, c0 + dx:c1 + dx]
+        src.append(ids[r0:r1, c0:c1][m])
+        dst.append(ids[r0 + dy:r1 + dy, c0 + dx:c1 + dx][m])
+        w.append(np.full(int(m.sum()), math.hypot(dy, dx)))
+    src, dst, w = np.concatenate(src), np.concatenate(dst), np.concatenate(w)
+    g = coo_matrix((np.concatenate([w, w]), (np.concatenate([src, dst]), np.concatenate([dst, src]))),
+                   shape=(ny * nx, ny * nx)).tocsr()
+    s, t = int(start[0]) * nx + int(start[1]), int(goal[0]) * nx + int(goal[1])
+    dist, pred = dijkstra(g, indices=s, return_predecessors=True)
+    if not np.isfinite(dist[t]):
+        return None
+    out = [t]
+    while out[-1] != s:
+        out.append(int(pred[out[-1]]))
+    return [(i // nx, i % nx) for i in reversed(out)]
+
+
+AGENTS = {"random": RandomAgent, "oracle": OracleAgent, "gan": GanAgent}

@@ -1,0 +1,120 @@
+"""`sonicverse eval`: run an agent over N episodes of a task, print mean metrics with 95% confidence intervals,
+write a per-episode CSV, and optionally a top-down trajectory map and a frames + audio folder per episode.
+
+Episode i of a run with seed S is reset with seed ``SeedSequence([S, i])``: the same command gives the same
+episodes, and the same agent (seeded the same way) the same trajectories.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from sonicverse_core.errors import ConfigError
+
+TASK_NAMES = ("AudioGoal", "AudioPointGoal", "SemanticAudioNav")
+CSV_FIELDS = ("episode", "episode_id", "scene", "category", "object", "sound", "sound_seconds", "geodesic",
+              "success", "spl", "sna", "soft_spl", "distance_to_goal", "path_length", "steps", "n_star", "collisions",
+              "reward")
+
+
+def episode_seed(seed: int, i: int) -> int:
+    return int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+
+
+def make_env(task: str, **kwargs):
+    from sonicverse_core.tasks.nav import TASKS
+
+    if task not in TASKS:
+        raise ConfigError(f"unknown task '{task}'; use one of {', '.join(TASKS)}")
+    return TASKS[task](**kwargs)
+
+
+def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: str = "heard", seed: int = 0,
+             csv_path: str | Path | None = None, maps: str | Path | None = None, video: str | Path | None = None,
+             env_kwargs: dict | None = None, progress=None) -> dict:
+    from agents import make_agent
+    from sonicverse_core.tasks.metrics import mean_ci95
+
+    if episodes < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {episodes}")
+    kw = dict(env_kwargs or {})
+    if video:
+        kw.setdefault("render_mode", "rgb_array")
+    env = make_env(task, split=split, sounds=sounds, **kw)
+    rows = []
+    try:
+        for i in range(episodes):
+            s = episode_seed(seed, i)
+            obs, info = env.reset(seed=s)
+            ag = make_agent(agent, np.random.default_rng(s))
+            ag.reset(env, obs, info)
+            ep = env.episode
+            traj = [env.home.world.pose[:2].copy()]
+            frames, sound = [], []
+            total, done = 0.0, False
+            while not done:
+                a = ag.act(obs, info)
+                obs, r, term, trunc, info = env.step(a)
+                total += r
+                traj.append(env.home.world.pose[:2].copy())
+                if video:
+                    frames.append(env.render())
+                    sound.append(env._window.buf[:, -env.spb:].copy())
+                done = term or trunc
+            m = info["metrics"]
+            row = {"episode": i, "episode_id": ep.episode_id, "scene": ep.scene, "category": ep.category,
+                   "object": ep.object_name, "sound": ep.sound, "sound_seconds": round(ep.sound_seconds, 3),
+                   "reward": round(total, 4), **{k: m[k] for k in CSV_FIELDS if k in m}}
+            rows.append(row)
+            if maps:
+                _write_map(env, ep, np.array(traj), Path(maps) / f"episode_{i:04d}.png", m)
+            if video:
+                _write_video(Path(video) / f"episode_{i:04d}", frames, sound, env.cfg.sample_rate)
+            if progress:
+                progress(i, row)
+    finally:
+        env.close()
+    if csv_path:
+        p = Path(csv_path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        with p.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+            w.writeheader()
+            w.writerows(rows)
+    out = {"task": task, "agent": agent, "episodes": len(rows), "split": split, "sounds": sounds, "seed": seed}
+    for key, col in (("sr", "success"), ("spl", "spl"), ("sna", "sna"), ("soft_spl", "soft_spl"),
+                     ("distance_to_goal", "distance_to_goal")):
+        out[key] = mean_ci95(r[col] for r in rows)
+    out["collisions_per_episode"] = float(np.mean([r["collisions"] for r in rows]))
+    out["steps_per_episode"] = float(np.mean([r["steps"] for r in rows]))
+    if csv_path:
+        out["csv"] = str(csv_path)
+    return out
+
+
+def _write_map(env, ep, traj, out: Path, m: dict) -> None:
+    from sonicverse_core.scene.topdown import draw_map
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    goals = np.array(ep.goals)
+    markers = {"start": (ep.start[0], ep.start[1], "g^"), "end": (traj[-1, 0], traj[-1, 1], "ks")}
+    for k, g in enumerate(goals):
+        markers[f"goal {k}" if k == 0 else f" {k}"] = (g[0], g[1], "r*" if k == 0 else "r.")
+    title = (f"{ep.episode_id}: {ep.category} ({ep.object_name}), success {int(m['success'])}, SPL {m['spl']:.2f}, "
+             f"SNA {m['sna']:.2f}")
+    draw_map(env.home.scene, out, grid=env.home.world.grid, paths=[traj], markers=markers, title=title)
+
+
+def _write_video(folder: Path, frames: list, sound: list, sample_rate: int) -> None:
+    """Frames as numbered PNGs and the binaural audio the agent heard as a WAV (mux with ffmpeg if wanted)."""
+    import soundfile as sf
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, f in enumerate(frames):
+        if f is not None:
+            Image.fromarray(f).save(folder / f"frame_{k:04d}.png")
+    if sound:
+        sf.write(folder / "audio.wav", np.concatenate(sound, axis=1).T, sample_rate, subtype="FLOAT")

@@ -1,0 +1,130 @@
+"""Navigation episodes as in the paper: a home, a start pose, a target category and object, eight positions sampled
+within 1 m of the object plus the navigable position nearest to it (success at any of the nine within 0.36 m),
+a sound of the target's category that plays for a sampled duration and then stops, and a start-goal geodesic
+distance of 1-10 m. Episodes whose goal is unreachable are never generated: every terminal position and the start
+lie in one connected component of the robot's collision map, and the start's geodesic distance is finite.
+
+Homes: built-in apartments, split by seed (train / val / test never share a home); by default the first
+:data:`DEFAULT_HOMES` seeds of each split are used. Sounds: heard (variants 0-2) or unheard (variant 3).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from sonicverse_core.errors import ConfigError
+
+SUCCESS_RADIUS = 0.36  # m: the TurtleBot's width
+GOAL_RADIUS = 1.0  # m around the target object
+DEFAULT_HOMES = {"train": 16, "val": 4, "test": 8}
+SOUND_SECONDS = (4.0, 20.0)
+
+
+@dataclass(frozen=True)
+class Episode:
+    episode_id: str
+    scene: str  # scene spec
+    split: str
+    start: tuple  # (x, y, yaw_deg)
+    category: str
+    object_name: str
+    goals: tuple  # nine (x, y)
+    sound: str  # 'category/variant'
+    sound_seconds: float
+    source_gain: float = 1.0
+    geodesic: float = 0.0  # m from start to the nearest goal
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @staticmethod
+    def from_json(text: str) -> "Episode":
+        d = json.loads(text)
+        d["start"] = tuple(d["start"])
+        d["goals"] = tuple(tuple(g) for g in d["goals"])
+        return Episode(**d)
+
+
+def homes(split: str, n: int | None = None) -> list[str]:
+    from sonicverse_core.scene.apartment import seeds_for
+
+    seeds = seeds_for(split)
+    n = DEFAULT_HOMES.get(split, 4) if n is None else int(n)
+    if not (1 <= n <= len(seeds)):
+        raise ConfigError(f"number of homes for split '{split}' must be 1..{len(seeds)}, got {n}")
+    return [f"builtin:apartment?seed={s}" for s in seeds[:n]]
+
+
+def goal_positions(world, obj, rng: np.random.Generator, k: int = 8) -> np.ndarray | None:
+    """Nine (x, y) terminal positions for object ``obj`` (the navigable cell nearest to it first, then ``k``
+    sampled within GOAL_RADIUS of its footprint), all in one component; None if there are not enough."""
+    grid = world.grid
+    lo, hi = obj.world_bounds()[:, :2]
+    c = grid.config.cell
+    rc0 = grid.cell_of(lo - GOAL_RADIUS - c)[0]
+    rc1 = grid.cell_of(hi + GOAL_RADIUS + c)[0]
+    r0, r1 = max(rc0[0], 0), min(rc1[0], grid.shape[0] - 1)
+    c0, c1 = max(rc0[1], 0), min(rc1[1], grid.shape[1] - 1)
+    if r1 < r0 or c1 < c0:
+        return None
+    sub = grid.labels[r0:r1 + 1, c0:c1 + 1] == grid.main_label
+    rows, cols = np.nonzero(sub)
+    if len(rows) < k + 1:
+        return None
+    pts = grid.center_of(np.stack([rows + r0, cols + c0], 1))
+    d = np.linalg.norm(np.maximum(np.maximum(lo - pts, pts - hi), 0.0), axis=1)
+    ok = d <= GOAL_RADIUS
+    pts, d = pts[ok], d[ok]
+    if len(pts) < k + 1:
+        return None
+    first = int(np.argmin(d))
+    rest = np.delete(np.arange(len(pts)), first)
+    pick = rng.choice(rest, size=k, replace=False)
+    return np.concatenate([pts[first:first + 1], pts[np.sort(pick)]])
+
+
+def sample_episode(world, scene_spec: str, split: str, sounds: str, rng: np.random.Generator,
+                   episode_id: str, geodesic_range=(1.0, 10.0), sound_seconds=SOUND_SECONDS,
+                   categories=None, tries: int = 200) -> Episode | None:
+    """One episode in ``world`` (None when this home has no valid one)."""
+    from assets_manifest.soundbank import CATEGORIES, HEARD, UNHEARD
+
+    if sounds not in ("heard", "unheard"):
+        raise ConfigError(f"sounds must be 'heard' or 'unheard', got '{sounds}'")
+    cats = set(categories or CATEGORIES)
+    objs = [o for o in world.scene.objects if o.category in cats]
+    by_cat: dict[str, list] = {}
+    for o in objs:
+        by_cat.setdefault(o.category, []).append(o)
+    names = sorted(by_cat)
+    while names:
+        cat = names[int(rng.integers(len(names)))]
+        cands = by_cat[cat]
+        obj = cands[int(rng.integers(len(cands)))]
+        goals = goal_positions(world, obj, rng)
+        if goals is None:
+            cands.remove(obj)
+            if not cands:
+                names.remove(cat)
+            continue
+        field_ = world.grid.distance_field(goals)
+        starts = world.grid.sample(rng, tries)
+        geo = world.grid.geodesic_from_field(field_, starts)
+        ok = np.flatnonzero((geo >= geodesic_range[0]) & (geo <= geodesic_range[1]) & np.isfinite(geo))
+        if len(ok) == 0:
+            cands.remove(obj)
+            if not cands:
+                names.remove(cat)
+            continue
+        i = int(ok[0])
+        yaw = float(rng.uniform(-180.0, 180.0))
+        variants = HEARD if sounds == "heard" else UNHEARD
+        var = int(variants[int(rng.integers(len(variants)))])
+        return Episode(episode_id=episode_id, scene=scene_spec, split=split,
+                       start=(float(starts[i, 0]), float(starts[i, 1]), yaw), category=cat, object_name=obj.name,
+                       goals=tuple((float(x), float(y)) for x, y in goals), sound=f"{cat}/{var}",
+                       sound_seconds=float(rng.uniform(*sound_seconds)), geodesic=float(geo[i]))
+    return None

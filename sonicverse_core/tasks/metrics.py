@@ -1,0 +1,54 @@
+"""Navigation metrics, defined as in the papers everyone compares against.
+
+* SR: fraction of successful episodes.
+* SPL (Anderson et al. 2018): S * l / max(l, p), l = geodesic start-goal distance, p = the agent's path length.
+* SNA (Chen et al. 2021, SAVi): S * n* / max(n*, n), n = actions taken (every step counts: collisions and turns in
+  place included), n* = actions on the shortest path: the geodesic at top speed, ceil(l / (v_max * dt)).
+* Distance to goal at the end (geodesic, m) and SoftSPL: (1 - d_end / l) * l / max(l, p).
+Means come with a 95% confidence interval (Student t on the per-episode values).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def spl(success: bool, shortest: float, path: float) -> float:
+    if not success:
+        return 0.0
+    if shortest <= 0:
+        return 1.0
+    return float(shortest / max(shortest, path))
+
+
+def sna(success: bool, n_star: int, n: int) -> float:
+    if not success:
+        return 0.0
+    return float(n_star / max(n_star, n, 1))
+
+
+def soft_spl(shortest: float, path: float, d_end: float) -> float:
+    if shortest <= 0:
+        return 1.0
+    progress = max(0.0, 1.0 - d_end / shortest)
+    return float(progress * shortest / max(shortest, path))
+
+
+def shortest_actions(shortest: float, max_speed: float, dt: float) -> int:
+    return max(1, int(math.ceil(shortest / (max_speed * dt) - 1e-9)))
+
+
+def mean_ci95(values) -> dict:
+    """{'mean', 'ci95' (half-width), 'n'} of per-episode values."""
+    x = np.asarray(list(values), float)
+    n = len(x)
+    if n == 0:
+        return {"mean": float("nan"), "ci95": float("nan"), "n": 0}
+    m = float(x.mean())
+    if n == 1:
+        return {"mean": m, "ci95": float("nan"), "n": 1}
+    from scipy import stats
+
+    h = float(stats.t.ppf(0.975, n - 1) * x.std(ddof=1) / math.sqrt(n))
+    return {"mean": m, "ci95": h, "n": n}

@@ -1,0 +1,275 @@
+"""Navigation tasks: the contract battery over every task, episodes, metrics, baselines, eval CLI, vector envs."""
+import json
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import sonicverse_core.tasks  # noqa: F401  (registers the ids)
+from sonicverse_core.errors import ActionError
+from sonicverse_core.tasks import ENV_IDS
+from sonicverse_core.tasks.episodes import GOAL_RADIUS, SUCCESS_RADIUS, homes
+from sonicverse_core.tasks.metrics import mean_ci95, shortest_actions, sna, spl
+
+HOME = ("builtin:apartment?seed=6000",)
+
+
+def _make(task, **kw):
+    kw.setdefault("scenes", HOME)
+    return gym.make(ENV_IDS[task], **kw)
+
+
+def _rollout(env, seed, n=100):
+    obs, info = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    out = [obs]
+    for _ in range(n):
+        a = rng.uniform(-1, 1, env.action_space.shape).astype(np.float32)
+        a[:2] = 0.05 * a[:2] + 0.95  # straight ahead: it will meet a wall
+        if len(a) == 3:
+            a[2] = -1.0
+        obs, r, term, trunc, info = env.step(a)
+        out.append(obs)
+        if term or trunc:
+            break
+    return out
+
+
+@pytest.mark.parametrize("task", list(ENV_IDS))
+def test_contract_battery(task):
+    from gymnasium.utils.env_checker import check_env
+
+    env = _make(task)
+    try:
+        check_env(env.unwrapped, skip_render_check=True)
+        a = _rollout(env, 11)
+        b = _rollout(env, 11)
+        assert len(a) == len(b)
+        for oa, ob in zip(a, b):  # same seed -> same rollout, bit for bit
+            for k in oa:
+                assert np.array_equal(oa[k], ob[k]), k
+        for prev, cur in zip(a, a[1:]):  # observations never share memory between steps
+            for k in cur:
+                assert not np.shares_memory(prev[k], cur[k]), k
+        for k in a[0]:  # no observation is constant over a rollout
+            assert any(not np.array_equal(a[0][k], o[k]) for o in a[1:]), f"{k} never changed"
+        for o in a:
+            assert env.observation_space.contains(o)
+            assert np.all(np.isfinite(o.get("audio", 0))) and np.abs(o.get("audio", 0)).max() <= 1.0
+        with pytest.raises(ActionError):
+            env.step(np.full(env.action_space.shape, np.nan, np.float32))
+        ep11 = env.unwrapped.episode
+        _rollout(env, 12, n=2)
+        assert env.unwrapped.episode.start != ep11.start  # another seed, another episode
+    finally:
+        env.close()
+
+
+def test_default_sensors_per_task():
+    assert {"pointgoal"} <= set(_make("AudioPointGoal").observation_space.spaces)
+    assert "rgb" not in _make("AudioGoal").observation_space.spaces
+    sem = _make("SemanticAudioNav")
+    assert {"rgb", "depth", "spectrogram"} <= set(sem.observation_space.spaces)
+    assert sem.action_space.shape == (3,)
+    spec = sem.observation_space["spectrogram"].shape
+    assert spec == (2, 64, 49)  # STFT 512/160/400 over 1 s at 16 kHz, pooled 4 x 2
+
+
+def test_episodes_follow_the_paper():
+    env = _make("AudioGoal").unwrapped
+    from assets_manifest.soundbank import HEARD
+
+    for seed in range(6):
+        env.reset(seed=seed)
+        ep = env.episode
+        w = env.home.world
+        goals = np.array(ep.goals)
+        assert len(goals) == 9 and len({tuple(g) for g in goals}) == 9
+        obj = w.scene.object(ep.object_name)
+        assert obj.category == ep.category
+        lo, hi = obj.world_bounds()[:, :2]
+        d = np.linalg.norm(np.maximum(np.maximum(lo - goals, goals - hi), 0), axis=1)
+        assert np.all(d <= GOAL_RADIUS + 1e-9)
+        assert np.all(w.grid.is_navigable(goals))  # reachable: the main component
+        assert 1.0 <= ep.geodesic <= 10.0
+        assert np.isfinite(w.grid.geodesic_distance(ep.start[:2], goals[0]))
+        assert int(ep.sound.split("/")[1]) in HEARD and ep.sound.startswith(ep.category)
+        assert env._geo0 == pytest.approx(ep.geodesic, abs=1e-9)
+    unheard = _make("AudioGoal", sounds="unheard").unwrapped
+    unheard.reset(seed=0)
+    assert unheard.episode.sound.endswith("/3")
+    # homes of the splits never overlap
+    assert not set(homes("train", 50)) & set(homes("test", 50))
+
+
+def test_sound_stops_after_its_duration():
+    env = _make("AudioGoal", sound_seconds=(0.3, 0.3), reverb=False, sensors=("audio",)).unwrapped
+    env.reset(seed=3)
+    loud = []
+    for _ in range(12):
+        obs, *_ = env.step(np.zeros(2, np.float32))
+        loud.append(float(np.abs(obs["audio"]).max()))
+    assert max(loud[:2]) > 0 and max(loud[5:]) == 0.0  # heard, then silence (no reverb tail in this setting)
+
+
+def test_reward_and_success_definitions():
+    env = _make("AudioGoal", sensors=("pose",)).unwrapped
+    env.reset(seed=4)
+    d0 = env._prev_geo
+    obs, r, term, trunc, info = env.step(np.array([0.0, 0.0], np.float32))
+    assert r == pytest.approx(-0.01)  # no progress, no collision: the time penalty
+    # teleport next to a goal and take one step: success, +10, episode over, metrics reported
+    g = np.array(env.episode.goals[0])
+    env.home.world.place_robot(*g, 0.0)
+    obs, r, term, trunc, info = env.step(np.array([0.0, 0.0], np.float32))
+    assert term and info["success"] and r == pytest.approx(d0 - info["distance_to_goal"] + 10 - 0.01, abs=1e-6)
+    m = info["metrics"]
+    assert m["success"] == 1.0 and m["sna"] > 0
+    # semantic task: only a stop within 0.36 m succeeds
+    sem = _make("SemanticAudioNav", sensors=("pose",)).unwrapped
+    sem.reset(seed=4)
+    obs, r, term, trunc, info = sem.step(np.array([0, 0, 1], np.float32))
+    assert term and not info["success"]
+    sem.reset(seed=4)
+    sem.home.world.place_robot(*np.array(sem.episode.goals[0]), 0.0)
+    _, _, term, _, info = sem.step(np.array([0, 0, -1], np.float32))
+    assert not term and info["at_goal"]
+    _, _, term, _, info = sem.step(np.array([0, 0, 1], np.float32))
+    assert term and info["success"]
+
+
+def test_metrics():
+    assert spl(True, 5.0, 10.0) == 0.5 and spl(False, 5.0, 5.0) == 0.0 and spl(True, 5.0, 4.0) == 1.0
+    assert sna(True, 50, 200) == 0.25 and sna(False, 50, 50) == 0.0
+    assert shortest_actions(7.0, 0.7, 0.1) == 100
+    ci = mean_ci95([1, 0, 1, 1])
+    assert ci["mean"] == 0.75 and 0 < ci["ci95"] < 1
+    assert SUCCESS_RADIUS == 0.36
+
+
+def test_oracle_proves_the_metrics_and_random_does_not():
+    from app.evaluate import run_eval
+
+    o = run_eval("AudioGoal", "oracle", 4, split="test", seed=1, env_kwargs={"scenes": HOME, "sensors": ("pose",)})
+    assert o["sr"]["mean"] == 1.0 and o["spl"]["mean"] >= 0.95
+    s = run_eval("SemanticAudioNav", "oracle", 3, split="test", seed=1,
+                 env_kwargs={"scenes": HOME, "sensors": ("pose",)})
+    assert s["sr"]["mean"] == 1.0
+    r = run_eval("AudioGoal", "random", 3, split="test", seed=1,
+                 env_kwargs={"scenes": HOME, "sensors": ("pose",), "max_steps": 150})
+    assert r["spl"]["mean"] < o["spl"]["mean"]
+
+
+def test_gan_agent_localises_the_sound():
+    """The binaural cue the gan agent relies on: its ITD estimate puts a source on the correct side."""
+    from agents.scripted import GanAgent
+
+    env = _make("AudioGoal", sensors=("audio", "depth", "pose", "bump"), reverb=False).unwrapped
+    obs, info = env.reset(seed=2)
+    ag = GanAgent(np.random.default_rng(0))
+    ag.reset(env, obs, info)
+    src = env.source.position[:2]
+    w = env.home.world
+    bearing = np.degrees(np.arctan2(*(src - w.pose[:2])[::-1]))
+    votes = []
+    for yaw_off in (90.0, -90.0):  # source straight to the left, then to the right
+        w.place_robot(*w.pose[:2], bearing - yaw_off)
+        lat = []
+        for _ in range(4):
+            obs, *_ = env.step(np.zeros(2, np.float32))
+            itd, e = ag._itd(obs["audio"])
+            if e > 0:
+                lat.append(itd)
+        votes.append(np.median(lat))
+    assert votes[0] > 1e-4 and votes[1] < -1e-4  # left ear leads for a source on the left
+
+
+def test_sim_to_real_options():
+    env = _make("AudioGoal", ego_noise=0.01, depth_min=0.8, depth_max=3.5, pose_noise=(0.01, 0.5),
+                source_gain=(0.5, 2.0)).unwrapped
+    obs, _ = env.reset(seed=5)
+    d = obs["depth"]
+    assert np.all((d == 0) | ((d >= 0.8) & (d <= 3.5)))
+    quiet = _make("AudioGoal", ego_noise=0.01, sound_seconds=(0.1, 0.1), reverb=False).unwrapped
+    quiet.reset(seed=5)
+    for _ in range(5):
+        obs, *_ = quiet.step(np.zeros(2, np.float32))
+    assert np.abs(obs["audio"]).max() == 0.0  # standing still: no motor noise, and the sound has stopped
+    obs, *_ = quiet.step(np.ones(2, np.float32))
+    rms = float(np.sqrt(np.mean(obs["audio"] ** 2)))
+    assert rms == pytest.approx(0.01, rel=0.3)  # driving at top speed: ego-noise at the configured level
+    env.reset(seed=6)
+    p0 = env.home.world.pose.copy()
+    for _ in range(10):
+        obs, *_ = env.step(np.zeros(2, np.float32))
+    assert np.allclose(env.home.world.pose, p0)
+    assert np.linalg.norm(obs["pose"][:2]) > 0  # the odometry drifted while the robot stood still
+    g = _make("AudioGoal", source_gain=(0.5, 2.0), sensors=("pose",)).unwrapped
+    gs = []
+    for s in range(4):
+        g.reset(seed=s)
+        gs.append(g.episode.source_gain)
+    assert all(0.5 <= x <= 2.0 for x in gs) and len(set(gs)) == 4
+
+
+def test_camera_is_loaded_only_when_asked_for():
+    code = ("import sys, numpy as np, gymnasium as gym, sonicverse_core.tasks as t;"
+            "e = gym.make(t.ENV_IDS['AudioGoal'], scenes=('builtin:apartment?seed=6000',), "
+            "sensors=('audio', 'spectrogram', 'pose'));"
+            "e.reset(seed=0); e.step(np.zeros(2, np.float32));"
+            "print('pyrender' in sys.modules, 'OpenGL' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["False", "False"]
+
+
+def test_vector_env_workers_render_in_their_own_context():
+    from sonicverse_core.tasks import make_vector_env
+
+    envs = make_vector_env("AudioGoal", 2, scenes=HOME, sensors=("rgb", "depth", "audio", "pose"), width=32,
+                           height=32)
+    try:
+        obs, info = envs.reset(seed=[1, 2])
+        assert obs["depth"].shape == (2, 32, 32, 1) and obs["rgb"].shape == (2, 32, 32, 3)
+        for _ in range(3):
+            obs, r, term, trunc, info = envs.step(np.tile([[0.5, 0.5]], (2, 1)).astype(np.float32))
+        assert np.all(np.isfinite(r)) and obs["audio"].shape[:2] == (2, 2)
+        assert np.any(obs["depth"] > 0)
+    finally:
+        envs.close()
+
+
+def test_eval_cli_prints_metrics_and_writes_files(tmp_path, cli):
+    r = cli("eval", "--task", "AudioGoal", "--agent", "oracle", "--episodes", "2", "--homes", "1", "--seed", "3",
+            "--csv", str(tmp_path / "ep.csv"), "--maps", str(tmp_path / "maps"), "--json", check_rc=0)
+    res = json.loads(r.stdout)
+    for k in ("sr", "spl", "sna"):
+        assert set(res[k]) >= {"mean", "ci95"}
+    assert res["sr"]["mean"] == 1.0
+    rows = (tmp_path / "ep.csv").read_text().strip().splitlines()
+    assert len(rows) == 3 and rows[0].startswith("episode,")
+    assert len(list((tmp_path / "maps").glob("*.png"))) == 2
+    bad = cli("eval", "--task", "AudioGoal", "--agent", "oracle", "--episodes", "0")
+    assert bad.returncode == 2 and bad.stderr.startswith("sonicverse: error:")
+
+
+def test_eval_video_writes_frames_and_audio(tmp_path):
+    import soundfile as sf
+
+    from app.evaluate import run_eval
+
+    run_eval("AudioGoal", "oracle", 1, seed=2, video=tmp_path, env_kwargs={"scenes": HOME, "width": 32,
+                                                                         "height": 32})
+    ep = tmp_path / "episode_0000"
+    frames = sorted(ep.glob("frame_*.png"))
+    audio, sr = sf.read(ep / "audio.wav")
+    assert frames and sr == 16000 and audio.shape == (len(frames) * 1600, 2)
+
+
+def test_bench_env_reports_steps_per_second(cli):
+    r = cli("bench", "env", "--steps", "40", "--workers", "0", check_rc=0)
+    b = json.loads(r.stdout)
+    assert b["steps_per_s"] > 0 and b["reference_depth_renders_per_s"] > 0
+    assert set(b["breakdown_ms"]) >= {"physics_ms", "audio_render_ms", "spectrogram_ms", "depth_render_ms"}
