@@ -121,6 +121,7 @@ class GanAgent(Agent):
         self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
         self.votes = np.zeros(72)
         self.since_listen = 0
+        self.relistens = 0
         self.quiet = 0
         self.path = None
         self.k = 0
@@ -246,6 +247,12 @@ class GanAgent(Agent):
         if self.since_listen % 8 == 0 or (obs.get("bump") is not None and obs["bump"][0] > 0):
             self._plan(p)
         if np.linalg.norm(self.goal - p) < 0.3:
+            if self.quiet < 5 and self.relistens < 4:  # still audible: listen again here before stopping
+                self.relistens += 1
+                self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+                self.votes[:] = 0
+                self.bearings = self.bearings[-1:]
+                return self._out([0.0, 0.0])
             return self._out([0.0, 0.0], stop=True)
         while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
             self.k += 1
