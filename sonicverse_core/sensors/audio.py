@@ -88,7 +88,6 @@ def ego_noise(seconds: float, sample_rate: int, rng: np.random.Generator) -> np.
     from scipy import signal
 
     n = int(seconds * sample_rate)
-    t = np.arange(n) / sample_rate
     f0 = 140.0 * (1 + 0.03 * signal.sosfilt(signal.butter(1, 2.0, fs=sample_rate, output="sos"),
                                             rng.standard_normal(n)) * 20)
     ph = 2 * np.pi * np.cumsum(f0) / sample_rate
@@ -97,7 +96,6 @@ def ego_noise(seconds: float, sample_rate: int, rng: np.random.Generator) -> np.
     hiss = 0.05 * rng.standard_normal(n)
     x = whine + 2.0 * rumble / max(np.std(rumble), 1e-12) + hiss
     x -= x.mean()
-    _ = t
     return (x / max(np.sqrt(np.mean(x * x)), 1e-12)).astype(np.float32)
 
 

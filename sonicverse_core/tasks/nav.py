@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import gymnasium as gym
@@ -59,7 +59,6 @@ class TaskConfig:
     source_gain: tuple = (1.0, 1.0)  # sampled per episode (log-uniform)
     pose_noise: tuple = (0.0, 0.0)  # random-walk std per step: (m, deg)
     home_cache: int = 8
-    extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.split not in DEFAULT_HOMES:
