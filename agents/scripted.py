@@ -118,15 +118,19 @@ class GanAgent(Agent):
         self.occ = np.zeros((self.SIZE, self.SIZE), np.int16)
         self.bearings: list[tuple[np.ndarray, float, float]] = []  # (position, world bearing rad, weight)
         self.goal = None
-        self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
         self.votes = np.zeros(72)
+        self._listen()
         self.since_listen = 0
         self.relistens = 0
         self.quiet = 0
         self.path = None
         self.k = 0
-        self.cam = env.cfg
         self._fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
+
+    def _listen(self) -> None:
+        """Start a full turn in place, voting for the sound's bearing."""
+        self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+        self.votes[:] = 0
 
     # --- perception -------------------------------------------------------------------------------------------
     def _pose(self, obs):
@@ -241,16 +245,14 @@ class GanAgent(Agent):
             self._plan(p)
         self.since_listen += 1
         if self.since_listen >= 25 and self.quiet < 5:  # listen again from here
-            self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
-            self.votes[:] = 0
+            self._listen()
             return self._out([0.0, 0.0])
         if self.since_listen % 8 == 0 or (obs.get("bump") is not None and obs["bump"][0] > 0):
             self._plan(p)
         if np.linalg.norm(self.goal - p) < 0.3:
             if self.quiet < 5 and self.relistens < 4:  # still audible: listen again here before stopping
                 self.relistens += 1
-                self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
-                self.votes[:] = 0
+                self._listen()
                 self.bearings = self.bearings[-1:]
                 return self._out([0.0, 0.0])
             return self._out([0.0, 0.0], stop=True)

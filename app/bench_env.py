@@ -38,12 +38,10 @@ def bench_env(task: str = "AudioGoal", steps: int = 400, workers: int = 2, size:
     sensors = ("depth", "audio", "spectrogram", "bump", "pose")
     env = make_env(task, split="test", homes=1, sensors=sensors, width=size, height=size)
     actions = _actions(rng, steps, env.action_space.shape[0])
-    env.reset(seed=seed)
     _run(env, actions[:20], seed)  # warm-up: numba, GL context, bake cache
     sps = _run(env, actions, seed)
     # breakdown: each part timed alone on the same env
     u = env
-    u.reset(seed=seed)
     w = u.home.world
     parts = {}
 

@@ -60,8 +60,8 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
                 total += r
                 traj.append(env.home.world.pose[:2].copy())
                 if video:
-                    frames.append(env.render())
-                    sound.append(env._window.buf[:, -env.spb:].copy())
+                    frames.append(obs["rgb"] if "rgb" in obs else env.render())
+                    sound.append(env.last_audio)
                 done = term or trunc
             m = info["metrics"]
             row = {"episode": i, "episode_id": ep.episode_id, "scene": ep.scene, "category": ep.category,

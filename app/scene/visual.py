@@ -6,13 +6,9 @@ on a CPU, the GPU's driver where there is one. Create it inside the process (or 
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-
-from sonicverse_core.sensors.camera import RenderScene, camera_matrix as head_matrix  # noqa: E402
+from sonicverse_core.sensors.camera import RenderScene, camera_matrix as head_matrix  # sets PYOPENGL_PLATFORM=egl
 
 IPD = 0.064  # m between the eyes (adult average)
 

@@ -56,6 +56,7 @@ class StreamingSpectrogram:
         self._mag = np.zeros((2, self.full.frames, N_FFT // 2 + 1), np.float32)
         self._tail = np.zeros((2, WIN - HOP), np.float32)  # samples before the next frame's hop
         self._win = self.full._win
+        self._idx: dict[int, np.ndarray] = {}  # frame indices per block length
 
     def reset(self) -> None:
         self._mag[:] = 0.0
@@ -67,7 +68,9 @@ class StreamingSpectrogram:
             raise ConfigError(f"streaming spectrogram blocks must be multiples of {HOP} samples, got {b}")
         x = np.concatenate([self._tail, block.astype(np.float32, copy=False)], axis=1)
         k = b // HOP
-        idx = np.arange(WIN)[None, :] + HOP * np.arange(k)[:, None]
+        idx = self._idx.get(k)
+        if idx is None:
+            idx = self._idx[k] = np.arange(WIN)[None, :] + HOP * np.arange(k)[:, None]
         mag = np.abs(np.fft.rfft(x[:, idx] * self._win, N_FFT, axis=-1)).astype(np.float32)
         F = self._mag.shape[1]
         if k >= F:

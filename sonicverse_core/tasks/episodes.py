@@ -74,8 +74,10 @@ def goal_positions(world, obj, rng: np.random.Generator, k: int = 8) -> np.ndarr
     rows, cols = np.nonzero(sub)
     if len(rows) < k + 1:
         return None
+    from sonicverse_core.world.world import box_distance
+
     pts = grid.center_of(np.stack([rows + r0, cols + c0], 1))
-    d = np.linalg.norm(np.maximum(np.maximum(lo - pts, pts - hi), 0.0), axis=1)
+    d = box_distance(lo, hi, pts)
     ok = d <= GOAL_RADIUS
     pts, d = pts[ok], d[ok]
     if len(pts) < k + 1:
@@ -105,16 +107,13 @@ def sample_episode(world, scene_spec: str, split: str, sounds: str, rng: np.rand
         cands = by_cat[cat]
         obj = cands[int(rng.integers(len(cands)))]
         goals = goal_positions(world, obj, rng)
-        if goals is None:
-            cands.remove(obj)
-            if not cands:
-                names.remove(cat)
-            continue
-        field_ = world.grid.distance_field(goals)
-        starts = world.grid.sample(rng, tries)
-        geo = world.grid.geodesic_from_field(field_, starts)
-        ok = np.flatnonzero((geo >= geodesic_range[0]) & (geo <= geodesic_range[1]) & np.isfinite(geo))
-        if len(ok) == 0:
+        ok = np.zeros(0, int)
+        if goals is not None:
+            field_ = world.grid.distance_field(goals)
+            starts = world.grid.sample(rng, tries)
+            geo = world.grid.geodesic_from_field(field_, starts)
+            ok = np.flatnonzero((geo >= geodesic_range[0]) & (geo <= geodesic_range[1]) & np.isfinite(geo))
+        if len(ok) == 0:  # no goals or no start at the right distance: never offer this object again
             cands.remove(obj)
             if not cands:
                 names.remove(cat)

@@ -26,6 +26,7 @@ from sonicverse_core.errors import ConfigError
 from sonicverse_core.tasks.episodes import (DEFAULT_HOMES, SOUND_SECONDS, SUCCESS_RADIUS, Episode, homes,
                                             sample_episode)
 from sonicverse_core.tasks.metrics import shortest_actions, sna, soft_spl, spl
+from sonicverse_core.world.robot import wheel_action
 
 ALL_SENSORS = ("rgb", "depth", "audio", "spectrogram", "bump", "pose", "pointgoal")
 
@@ -142,11 +143,15 @@ class SonicverseNavEnv(gym.Env):
         self.audio_n = max(int(round(cfg.audio_window * cfg.sample_rate)), 400)
         from sonicverse_core.sensors.audio import HOP, BinauralWindow, Spectrogram, StreamingSpectrogram
 
+        # the spectrogram as a stream when the window and the step are whole hops (the defaults); otherwise the
+        # full STFT over a rolling window of the last audio_window seconds
+        self._window = None
         if self.audio_n % HOP == 0 and self.spb % HOP == 0:
             self._spec = StreamingSpectrogram(self.audio_n, cfg.spec_pool)
         else:
             self._spec = Spectrogram(self.audio_n, cfg.spec_pool)
-        self._window = BinauralWindow(self.audio_n)
+            self._window = BinauralWindow(self.audio_n)
+        self.last_audio = np.zeros((2, self.spb), np.float32)  # what the robot heard in the last step
         n_act = 3 if self.STOP_ACTION else 2
         self.action_space = spaces.Box(-1.0, 1.0, (n_act,), np.float32)
         obs = {}
@@ -200,8 +205,8 @@ class SonicverseNavEnv(gym.Env):
             spec = self.scene_specs[int(rng.integers(len(self.scene_specs)))]
             home = self._home(spec)
             home.world.restore()
-            ep = sample_episode(home.world, spec, c.split, c.sounds, rng, episode_id="", geodesic_range=c.geodesic_range,
-                                sound_seconds=c.sound_seconds)
+            ep = sample_episode(home.world, spec, c.split, c.sounds, rng, episode_id="",
+                                geodesic_range=c.geodesic_range, sound_seconds=c.sound_seconds)
             if ep is not None:
                 lo, hi = c.source_gain
                 gain = float(math.exp(rng.uniform(math.log(lo), math.log(hi)))) if hi > lo else float(lo)
@@ -237,9 +242,10 @@ class SonicverseNavEnv(gym.Env):
         self.steps, self.collisions, self.path_length = 0, 0, 0.0
         self._done = False
         self._setup_audio(ep)
-        self._window.clear()
-        if hasattr(self._spec, "reset"):
+        if self._window is None:
             self._spec.reset()
+        else:
+            self._window.clear()
         self._last_wheels = np.zeros(2)
         obs = self._observe()
         return obs, self._info()
@@ -282,7 +288,7 @@ class SonicverseNavEnv(gym.Env):
 
     def _geodesic(self) -> float:
         w = self.home.world
-        return float(self.home.world.grid.geodesic_from_field(self._field, w.pose[None, :2])[0])
+        return float(w.grid.geodesic_from_field(self._field, w.pose[None, :2])[0])
 
     def _euclid_to_goal(self) -> float:
         return float(np.min(np.linalg.norm(self._goals - self.home.world.pose[:2], axis=1)))
@@ -293,15 +299,13 @@ class SonicverseNavEnv(gym.Env):
     def _observe(self) -> dict:
         w = self.home.world
         obs = {}
-        block = self._render_audio()
-        self._window.push(block)
+        block = self.last_audio = self._render_audio()
+        if self._window is not None:
+            self._window.push(block)
         if "audio" in self.sensors:
             obs["audio"] = block.copy()
         if "spectrogram" in self.sensors:
-            if hasattr(self._spec, "push"):
-                obs["spectrogram"] = self._spec.push(block)
-            else:
-                obs["spectrogram"] = self._spec(self._window.buf)
+            obs["spectrogram"] = self._spec(self._window.buf) if self._window is not None else self._spec.push(block)
         if "rgb" in self.sensors or "depth" in self.sensors:
             img = self._camera().render(*w.camera)
             if "rgb" in self.sensors:
@@ -335,8 +339,6 @@ class SonicverseNavEnv(gym.Env):
     def step(self, action):
         if self.episode is None or self._done:
             raise ConfigError("call reset() before step() (and after an episode ends)")
-        from sonicverse_core.world.robot import wheel_action
-
         a = wheel_action(action, self.action_space.shape[0])
         w = self.home.world
         self._last_wheels = a[:2]

@@ -14,7 +14,7 @@ import numpy as np
 
 from sonicverse_core.errors import ActionError, ConfigError, PoseError
 from sonicverse_core.geometry.navgrid import NavConfig, NavGrid
-from sonicverse_core.scene.model import Door, Scene, yaw_pose
+from sonicverse_core.scene.model import Door, Scene, points_in_polygon, yaw_pose
 from sonicverse_core.world.robot import RobotConfig, integrate, wheel_action
 
 REACH = 0.5  # m from the robot's edge to an object's footprint for picking it up
@@ -39,6 +39,11 @@ def footprint_polygon(o, z_lo: float, z_hi: float) -> np.ndarray | None:
         return np.array([lo, [hi[0], lo[1]], hi, [lo[0], hi[1]]])
 
 
+def box_distance(lo: np.ndarray, hi: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Horizontal distance from points (n, 2) to the axis-aligned box [lo, hi] (0 inside)."""
+    return np.linalg.norm(np.maximum(np.maximum(lo - pts, pts - hi), 0.0), axis=-1)
+
+
 def _segment_distance(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
     """Distance from points (n, 2) to the boundary of polygon (k, 2)."""
     a, b = poly, np.roll(poly, -1, axis=0)
@@ -52,9 +57,6 @@ class World:
     """A scene with a robot. ``drive(action, dt)`` moves it; ``set_door``, ``pick``, ``place`` change the world."""
 
     def __init__(self, scene: Scene, robot: RobotConfig = RobotConfig(), nav: NavConfig | None = None):
-        from sonicverse_core.scene.model import points_in_polygon
-
-        self._inside = points_in_polygon
         self.scene = scene
         self.robot = robot
         self.nav = nav or NavConfig(robot_radius=max(robot.radius, 0.05), robot_height=0.5)
@@ -90,7 +92,7 @@ class World:
                 R, C = np.meshgrid(r, cc, indexing="ij")
                 R, C = R.ravel(), C.ravel()
                 ctr = self.base.center_of(np.stack([R, C], 1))
-                near = self._inside(ctr, poly) | (_segment_distance(ctr, poly) <= 0.75 * c)
+                near = points_in_polygon(ctr, poly) | (_segment_distance(ctr, poly) <= 0.75 * c)
                 idx = np.ravel_multi_index((R[near], C[near]), self.base.shape)
         self._fp[o.name] = (key, idx)
         return idx
@@ -146,14 +148,17 @@ class World:
         door = self.scene.object(name)
         if not isinstance(door, Door):
             raise ActionError(f"'{name}' is not a door")
+        if not math.isfinite(open_fraction):
+            raise PoseError(f"{name}: open fraction must be finite")
         before = door.open_fraction
-        target = min(max(float(open_fraction), 0.0), 1.0) if math.isfinite(open_fraction) else open_fraction
         z0 = self.base.z_floor
         p = self.pose[:2][None]
-        for f in np.linspace(before, target, 12)[1:] if math.isfinite(target) else ():
+        for f in np.linspace(before, min(max(open_fraction, 0.0), 1.0), 12)[1:]:
             door.set_open(f)  # the leaf's sweep, checked against the robot's body
             poly = footprint_polygon(door, z0 + self.nav.max_step, z0 + self.nav.robot_height)
-            if poly is not None and (self._inside(p, poly)[0] or _segment_distance(p, poly)[0] < self.robot.radius):
+            hits = poly is not None and (points_in_polygon(p, poly)[0]
+                                         or _segment_distance(p, poly)[0] < self.robot.radius)
+            if hits:
                 door.set_open(before)
                 raise ActionError(f"{name} cannot move: the robot is in its way")
         self.scene.set_door(name, open_fraction)
@@ -164,9 +169,7 @@ class World:
         """Horizontal distance (m) from the robot's edge to the object's footprint."""
         o = self.scene.object(name)
         lo, hi = o.world_bounds()[:, :2]
-        p = self.pose[:2]
-        d = np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0))
-        return float(max(d - self.robot.radius, 0.0))
+        return float(max(box_distance(lo, hi, self.pose[:2]) - self.robot.radius, 0.0))
 
     def pick(self, name: str) -> None:
         o = self.scene.object(name)
