@@ -125,6 +125,9 @@ def build_parser() -> argparse.ArgumentParser:
     from app.cli_tasks import add_task_commands
 
     add_task_commands(sub, bs)
+    from app.cli_vr import add_vr_commands
+
+    add_vr_commands(sub, bs)
     return p
 
 

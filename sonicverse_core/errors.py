@@ -69,3 +69,7 @@ def require(module: str, purpose: str, install: str | None = None):
         raise DependencyError(
             f"{purpose} needs the Python package '{pkg}' ({exc}); install it with: .venv/bin/pip install {pkg}"
         ) from exc
+
+
+class DataError(SonicverseError):
+    """A data file written by Sonicverse (an input recording...) that is missing, corrupt or of another version."""

@@ -7,6 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.audio_rt.jack import JackServer as _JackServer
+from sonicverse_core.errors import SonicverseError
+
 ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
@@ -40,37 +43,21 @@ def cli():
     return run_cli
 
 
-class JackServer:
-    """A JACK server with the dummy backend (a real clocked audio device), started and killed by PID."""
+class JackServer(_JackServer):
+    """app.audio_rt.jack.JackServer, whose start-up failures fail the test (never a skip: the README's set-up
+    installs jackd2)."""
 
-    def __init__(self, name: str, rate: int = 48000, period: int = 256, playback: int = 2, capture: int = 2):
-        self.name = name
-        exe = shutil.which("jackd")
-        if exe is None:  # never a skip: the README's set-up installs jackd2
-            pytest.fail("jackd not found: install the Debian package jackd2 (scripts/install-system.sh)")
-        self.cmd = [exe, "-n", name, "-d", "dummy", "-r", str(rate), "-p", str(period), "-P", str(playback),
-                    "-C", str(capture)]
-        self.proc = None
-        self.start()
+    def __init__(self, *a, **kw):
+        try:
+            super().__init__(*a, **kw)
+        except SonicverseError as exc:
+            pytest.fail(str(exc))
 
     def start(self) -> None:
-        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        w = subprocess.run(["jack_wait", "-s", self.name, "-w", "-t", "20"], capture_output=True, text=True)
-        if w.returncode != 0 or self.proc.poll() is not None:
-            err = self.proc.stderr.read() if self.proc.poll() is not None else w.stdout
-            self.stop()
-            pytest.fail(f"JACK server '{self.name}' did not start: {err[-500:]}")
-
-    def stop(self) -> None:
-        """SIGTERM (a clean shutdown that leaves no stale entry in JACK's server registry), SIGKILL if it hangs."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
-        self.proc = None
+        try:
+            super().start()
+        except SonicverseError as exc:
+            pytest.fail(str(exc))
 
 
 @pytest.fixture(scope="session")

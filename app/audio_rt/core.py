@@ -66,16 +66,18 @@ class Shared:
         return raw[: raw.index(0) if 0 in raw else len(raw)].decode("utf-8", "replace")
 
 
-def build_renderer(scene_setup: AudioScene, cfg: AudioConfig):
-    """(renderer, scene, mic source or None, door names) for the audio side."""
+def build_renderer(scene_setup: AudioScene, cfg: AudioConfig, scene=None):
+    """(renderer, scene, mic source or None, door names) for the audio side; ``scene``: an already loaded core
+    scene to render (shared with the caller, e.g. the headless VR loop), else ``scene_setup.spec`` is loaded."""
     from app.cli_audio import load_sound
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
 
-    scene, probes = None, None
-    if scene_setup.spec is not None:
+    probes = None
+    if scene is None and scene_setup.spec is not None:
         from sonicverse_core.scene.spec import load_scene
 
         scene = load_scene(scene_setup.spec)
+    if scene is not None:
         if scene_setup.late_reverb or scene_setup.early_reflections:
             from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions, \
                 enclosed_fraction

@@ -1,60 +1,215 @@
-"""The visual scene built from the core scene: one pyrender scene, dynamic objects (doors, carried things) as nodes
-whose poses follow the core scene, and a stereo camera rig. pyrender is imported here only (lazily by callers).
+"""The visual scene built from the core scene: one pyrender scene whose doors and moved objects follow the core
+scene every frame, the user's avatar (head, body, hands) and the robots as bodies that robots' cameras see, and
+eye / camera renders into offscreen framebuffers. Imported only when views are rendered (the audio-only mode and
+the core never import it).
 
 Offscreen rendering goes through EGL (PYOPENGL_PLATFORM=egl, set before the first OpenGL import): Mesa's llvmpipe
 on a CPU, the GPU's driver where there is one. Create it inside the process (or worker) that renders.
+
+Speed on a CPU (measured, see ``sonicverse bench vr``): pyrender's lit PBR shader costs ~5x a flat one on llvmpipe,
+so by default lighting is baked into face colours once (Lambert, one directional light + ambient) and drawn with
+the FLAT shader; multisampling (pyrender always renders 4x MSAA) and the depth read-back that a display does not
+need are optional. Both approximations are measured against the full path by ``bench vr`` (mean pixel error).
 """
 from __future__ import annotations
 
+import types
+
 import numpy as np
 
+from app.scene.eyes import IPD, eye_offsets
+from sonicverse_core.errors import ConfigError
 from sonicverse_core.sensors.camera import RenderScene, camera_matrix as head_matrix  # sets PYOPENGL_PLATFORM=egl
 
-IPD = 0.064  # m between the eyes (adult average)
+import pyrender  # noqa: E402
+import pyrender.renderer as _pr  # noqa: E402
+from OpenGL import GL  # noqa: E402
+
+LIGHT_DIR = np.array([0.35, 0.5, 0.79])  # towards the light (unit), from above
+SKIN = (224, 172, 140, 255)
+SHIRT = (60, 110, 190, 255)
+ROBOT = (45, 45, 50, 255)
+
+
+class FixedCamera(pyrender.Camera):
+    """A camera with a given OpenGL projection matrix (OpenVR hands one per eye, asymmetric)."""
+
+    def __init__(self, projection: np.ndarray, znear: float = 0.05, zfar: float = 50.0):
+        super().__init__(znear=znear, zfar=zfar)
+        self.projection = np.asarray(projection, float)
+
+    def get_projection_matrix(self, width=None, height=None):
+        return self.projection
+
+
+def bake_lighting(colours: np.ndarray, normals: np.ndarray, ambient: float = 0.45) -> np.ndarray:
+    """RGBA uint8 (n, 4) face colours lit by one directional light: c * (ambient + (1 - ambient) * |n . l|) (two-
+    sided, like the interior faces a camera sees)."""
+    k = ambient + (1 - ambient) * np.abs(normals @ LIGHT_DIR / np.linalg.norm(LIGHT_DIR))
+    out = colours.astype(np.float32).copy()
+    out[:, :3] *= k[:, None]
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def _colour_only_reader(self, scene, flags):
+    """pyrender's read-back without the depth image (a display needs none): resolve, read RGB, flip."""
+    w, h = self._main_fb_dims
+    if self._ms:
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
+        GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._main_fb)
+        GL.glBlitFramebuffer(0, 0, w, h, 0, 0, w, h, GL.GL_COLOR_BUFFER_BIT, GL.GL_NEAREST)
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
+    else:
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
+    buf = GL.glReadPixels(0, 0, w, h, GL.GL_RGB, GL.GL_UNSIGNED_BYTE)
+    return np.flip(np.frombuffer(buf, np.uint8).reshape(h, w, 3), 0), None
+
+
+def _sampled_framebuffer(samples: int):
+    def configure(self):
+        orig = _pr.glRenderbufferStorageMultisample
+        if samples:
+            return _pr.Renderer._configure_main_framebuffer(self)
+        # a plain (single-sample) storage under the multisample names: the draw and read target are the same
+        _pr.glRenderbufferStorageMultisample = lambda tgt, n, fmt, w, h: GL.glRenderbufferStorage(tgt, fmt, w, h)
+        try:
+            return _pr.Renderer._configure_main_framebuffer(self)
+        finally:
+            _pr.glRenderbufferStorageMultisample = orig
+    return configure
+
+
+def offscreen_renderer(width: int, height: int, msaa: bool = True, colour_only: bool = False):
+    """A pyrender OffscreenRenderer; ``msaa=False`` draws single-sampled, ``colour_only`` skips the depth read-back.
+    (Both adapt pyrender 0.1.45's private framebuffer methods, pinned in requirements.txt; tests cover them.)"""
+    r = pyrender.OffscreenRenderer(width, height)
+    inner = r._renderer
+    inner._ms = msaa
+    if not msaa:
+        inner._configure_main_framebuffer = types.MethodType(_sampled_framebuffer(0), inner)
+    if colour_only:
+        inner._read_main_framebuffer = types.MethodType(_colour_only_reader, inner)
+    return r
+
+
+def _solid(tm, colour) -> "pyrender.Mesh":
+    tm.visual.face_colors = bake_lighting(np.tile(np.array(colour, np.uint8), (len(tm.faces), 1)), tm.face_normals)
+    return pyrender.Mesh.from_trimesh(tm, smooth=False)
 
 
 class VisualScene:
-    """pyrender scene of a core scene; ``sync()`` copies dynamic poses, ``render_stereo(head)`` draws both eyes."""
+    """pyrender scene of a core scene with an avatar and robots. ``render_eye(pose, projection)`` draws one view;
+    ``render_stereo(head)`` both eyes of a head at (x, y, z, yaw[, pitch]); ``render_camera(pose)`` a robot's
+    view (with the avatar's head and body visible)."""
 
     def __init__(self, scene, width: int = 512, height: int = 512, yfov_deg: float = 90.0, znear: float = 0.05,
-                 zfar: float = 50.0):
-        import pyrender
-
-        from sonicverse_core.errors import ConfigError
-
+                 zfar: float = 50.0, shading: str = "baked", msaa: bool = True, robots: int = 0,
+                 avatar: bool = True):
         if not (16 <= width <= 8192 and 16 <= height <= 8192) or not (10 <= yfov_deg <= 170):
             raise ConfigError("view size must be 16-8192 pixels and the field of view 10-170 degrees")
-        self.core, self.width, self.height = scene, width, height
-        self.rs = RenderScene(scene)
+        if shading not in ("baked", "lit"):
+            raise ConfigError(f"shading must be 'baked' or 'lit', got '{shading}'")
+        import trimesh
+
+        self.core, self.width, self.height, self.shading = scene, width, height, shading
+        self.rs = RenderScene(scene, face_shading=bake_lighting if shading == "baked" else None)
         self.scene = self.rs.scene
+        self.znear, self.zfar = znear, zfar
         self.camera = pyrender.PerspectiveCamera(yfov=np.radians(yfov_deg), znear=znear, zfar=zfar,
                                                  aspectRatio=width / height)
         self.cam_node = self.scene.add(self.camera, pose=np.eye(4))
-        self.renderer = pyrender.OffscreenRenderer(width, height)
-        self._flags = pyrender.RenderFlags.NONE
+        self.renderer = offscreen_renderer(width, height, msaa=msaa, colour_only=True)
+        self._flags = pyrender.RenderFlags.FLAT if shading == "baked" else pyrender.RenderFlags.SKIP_CULL_FACES
+        self._fixed: dict[bytes, FixedCamera] = {}
+        self.avatar = {}
+        if avatar:  # head, body (hidden in the user's own eyes), two hands
+            self.avatar["head"] = self.scene.add(_solid(trimesh.creation.icosphere(2, 0.11), SKIN))
+            self.avatar["body"] = self.scene.add(_solid(trimesh.creation.cylinder(0.17, 1.0, 16), SHIRT))
+            for k in ("left", "right"):
+                self.avatar[k] = self.scene.add(_solid(trimesh.creation.icosphere(1, 0.05), SKIN))
+        self.robot_nodes = [self.scene.add(_solid(trimesh.creation.cylinder(0.177, 0.42, 24), ROBOT))
+                            for _ in range(robots)]
+        self._robot_cam = None
 
-    def sync(self) -> None:
-        """Follow doors and moved objects when the core scene changed."""
+    # --- per frame ----------------------------------------------------------------------------------------------
+    def sync(self, head: np.ndarray | None = None, hands=None, hands_valid=None, robots=()) -> None:
+        """Follow doors and moved objects; place the avatar (head 4x4, hands (2, 4, 4)) and robots (x, y, yaw)."""
         self.rs.sync()
+        if head is not None and self.avatar:
+            self.scene.set_pose(self.avatar["head"], head)
+            z0 = self.core.floor_z
+            top = max(head[2, 3] - 0.22, z0 + 0.3)
+            body = np.eye(4)
+            body[:3, :3] = np.diag([1.0, 1.0, top - z0])
+            body[:3, 3] = (head[0, 3], head[1, 3], 0.5 * (z0 + top))
+            self.scene.set_pose(self.avatar["body"], body)
+            for k, name in enumerate(("left", "right")):
+                ok = hands is not None and (hands_valid is None or hands_valid[k])
+                self.avatar[name].mesh.is_visible = bool(ok)
+                if ok:
+                    self.scene.set_pose(self.avatar[name], hands[k])
+        for node, rb in zip(self.robot_nodes, robots):
+            m = np.eye(4)
+            a = np.radians(rb[2])
+            m[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+            m[:3, 3] = (rb[0], rb[1], self.core.floor_z + 0.21)
+            self.scene.set_pose(node, m)
 
-    def render_eye(self, pose: np.ndarray, depth: bool = False):
+    def _own_body(self, visible: bool) -> None:
+        for k in ("head", "body"):
+            if k in self.avatar:
+                self.avatar[k].mesh.is_visible = visible
+
+    def render_eye(self, pose: np.ndarray, projection: np.ndarray | None = None) -> np.ndarray:
+        """(H, W, 3) uint8 seen from a camera-frame pose; ``projection`` (4x4) overrides the symmetric one."""
+        if projection is None:
+            cam = self.camera
+        else:
+            key = np.asarray(projection, np.float64).tobytes()
+            cam = self._fixed.get(key)
+            if cam is None:
+                cam = self._fixed[key] = FixedCamera(projection, self.znear, self.zfar)
+        if self.cam_node.camera is not cam:
+            self.cam_node.camera = cam
         self.scene.set_pose(self.cam_node, pose)
-        if depth:
-            return self.renderer.render(self.scene, flags=self._flags)
-        import pyrender
+        self._own_body(False)
+        try:
+            return self.renderer.render(self.scene, flags=self._flags)[0]
+        finally:
+            self._own_body(True)
 
-        return self.renderer.render(self.scene, flags=self._flags | pyrender.RenderFlags.SKIP_CULL_FACES)[0]
+    def render_views(self, head: np.ndarray, eye_to_head, projections=None, out: np.ndarray | None = None):
+        """(n_eyes, H, W, 3) uint8 for a head pose (4x4) and per-eye eye->head transforms (and projections)."""
+        n = len(eye_to_head)
+        out = np.empty((n, self.height, self.width, 3), np.uint8) if out is None else out
+        for k in range(n):
+            out[k] = self.render_eye(head @ eye_to_head[k], None if projections is None else projections[k])
+        return out
 
     def render_stereo(self, head, ipd: float = IPD) -> np.ndarray:
         """(2, height, width, 3) uint8: left and right eye for head (x, y, z, yaw[, pitch])."""
         self.sync()
-        m = head_matrix(*head)
-        out = np.empty((2, self.height, self.width, 3), np.uint8)
-        for k, side in enumerate((-0.5, 0.5)):  # left eye: -0.5 along the camera's +x (right) axis
-            e = m.copy()
-            e[:3, 3] += side * ipd * m[:3, 0]
-            out[k] = self.render_eye(e)
-        return out
+        return self.render_views(head_matrix(*head), eye_offsets(ipd))
+
+    def render_camera(self, pose: np.ndarray, width: int = 128, height: int = 128,
+                      hfov_deg: float = 90.0) -> np.ndarray:
+        """(H, W, 3) uint8 seen by a robot's camera (camera-frame pose); the avatar is visible. Drawn by the same
+        GL context as the eyes (pyrender binds a mesh to one context), at its own viewport size."""
+        key = (width, height, hfov_deg)
+        if self._robot_cam is None or self._robot_cam[0] != key:
+            yfov = 2 * np.arctan(np.tan(np.radians(hfov_deg) / 2) * height / width)
+            self._robot_cam = (key, pyrender.PerspectiveCamera(yfov=yfov, znear=0.05, zfar=self.zfar,
+                                                               aspectRatio=width / height))
+        self.cam_node.camera = self._robot_cam[1]
+        self.scene.set_pose(self.cam_node, pose)
+        r = self.renderer
+        r.viewport_width, r.viewport_height = width, height
+        try:
+            return r.render(self.scene, flags=self._flags)[0]
+        finally:
+            r.viewport_width, r.viewport_height = self.width, self.height
 
     def close(self) -> None:
-        self.renderer.delete()
+        if self.renderer is not None:
+            self.renderer.delete()
+            self.renderer = None

@@ -43,13 +43,14 @@ class RenderScene:
     and the merged mesh is rebuilt without it. Static parts are coloured by material, objects by semantic category
     (so the categories an agent looks for are visible). ``sync()`` follows the core scene's dynamic state."""
 
-    def __init__(self, scene, bg=(0.55, 0.6, 0.7, 1.0), merge: bool = True):
+    def __init__(self, scene, bg=(0.55, 0.6, 0.7, 1.0), merge: bool = True, face_shading=None):
         import pyrender
 
         from sonicverse_core.scene.materials import MATERIAL_INDEX
 
         self.core = scene
         self.merge = merge
+        self._shade = face_shading  # (colours (n, 4), normals (n, 3)) -> colours: lighting baked into the faces
         self.scene = pyrender.Scene(bg_color=bg, ambient_light=(0.35, 0.35, 0.35))
         self._mat_pal = palette(len(MATERIAL_INDEX))
         cats = sorted({o.category for o in scene.objects})
@@ -89,8 +90,8 @@ class RenderScene:
             cols.append(np.tile(self._obj_colour[o.name], (len(o.mesh.faces), 1)))
             off += len(v)
             self._batched.add(o.name)
-        tm = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), face_colors=np.concatenate(cols),
-                             process=False)
+        tm = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
+        tm.visual.face_colors = self._colours(np.concatenate(cols), tm.face_normals)
         self._batch_node = self.scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False))
 
     def _own_node(self, name: str) -> None:
@@ -98,8 +99,11 @@ class RenderScene:
 
         o = self.core.object(name)
         tm = o.mesh.copy()
-        tm.visual.face_colors = self._obj_colour[name]
+        tm.visual.face_colors = self._colours(np.tile(self._obj_colour[name], (len(tm.faces), 1)), tm.face_normals)
         self.nodes[name] = self.scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False), pose=o.pose)
+
+    def _colours(self, colours: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        return colours if self._shade is None else self._shade(colours, normals)
 
     def sync(self) -> None:
         if self.core.dynamic_version == self._version:

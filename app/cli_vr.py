@@ -1,0 +1,144 @@
+"""`sonicverse vr` (the VR application) and `sonicverse bench vr`."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+from sonicverse_core.errors import ConfigError
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"eye size must be WIDTHxHEIGHT, got '{text}'") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise ConfigError(f"eye size must be 16-8192 pixels per side, got {w}x{h}")
+    return w, h
+
+
+def has_display() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) and \
+        os.environ.get("QT_QPA_PLATFORM", "") not in ("offscreen", "minimal")
+
+
+def headset_present() -> bool:
+    try:
+        import openvr
+
+        return bool(openvr.isHmdPresent())
+    except Exception:  # noqa: BLE001 - no runtime library: no headset
+        return False
+
+
+def choose_backend(name: str) -> str:
+    """'auto': OpenVR when a headset is there, the desktop window when a display is there, else headless."""
+    if name != "auto":
+        return name
+    if headset_present():
+        return "openvr"
+    return "desktop" if has_display() else "headless"
+
+
+def make_backend(name: str, a, recording=None):
+    size = _size(a.size) if a.size else None
+    if name == "openvr":
+        from app.vr.openvr_backend import OpenVRBackend
+
+        return OpenVRBackend(size=size)
+    w, h = size or (512, 512)
+    if name == "desktop":
+        from app.vr.desktop import DesktopBackend
+
+        return DesktopBackend(w, h, target_hz=a.rate)
+    from app.vr.headless import HeadlessBackend
+
+    return HeadlessBackend(recording, target_hz=a.rate or 90.0, width=w, height=h, realtime=a.realtime)
+
+
+def cmd_vr(a) -> int:
+    from app.vr.frame import Recording
+    from app.vr.session import SessionConfig, VRSession
+
+    backend_name = choose_backend(a.backend)
+    recording = None
+    scene, seed, robots = a.scene, a.seed, a.robots
+    if a.replay:
+        if backend_name != "headless":
+            raise ConfigError("--replay runs in the headless backend (add --backend headless)")
+        recording = Recording.load(a.replay)
+        scene = a.scene or recording.meta.get("scene")
+        seed = recording.meta.get("seed", seed)
+        robots = recording.meta.get("robots", robots)
+    headless = backend_name == "headless"
+    frames = a.frames if a.frames is not None else (180 if headless and not a.replay else None)
+    out = a.out or ("out/vr" if headless else None)
+    cfg = SessionConfig(scene=scene or "builtin:apartment", views=not a.audio_only,
+                        audio=a.audio or ("offline" if headless else "live"), audio_device=a.audio_device,
+                        robots=robots, msaa=a.msaa, seed=seed,
+                        write_frames=a.write_frames if a.write_frames is not None else (10 if headless else 0))
+    backend = make_backend(backend_name, a, recording)
+    with VRSession(cfg, backend) as s:
+        if not a.json:
+            print(f"sonicverse vr: {backend_name} backend, {cfg.scene}, eyes {backend.width}x{backend.height} at "
+                  f"{backend.target_hz:g} Hz" + (", audio only" if a.audio_only else ""), file=sys.stderr)
+        s.run(frames=frames, out=out)
+        if a.record:
+            s.recording.save(a.record)
+        written = s.save(out) if out else []
+        summary = s.summary()
+    keys = ("frames", "missed_frames", "frame_ms_p50", "frame_ms_p99", "target_hz")
+    if a.json:
+        print(json.dumps({**{k: summary[k] for k in keys}, **{k: v for k, v in summary.items() if k not in keys},
+                          "out": out, "files": written}))
+    else:
+        print(" ".join(f"{k}={summary[k]}" for k in keys) + (f"; wrote {len(written)} files to {out}/" if out else ""))
+        for e in summary["events"]:
+            print(f"  {e}", file=sys.stderr)
+    return 0
+
+
+def cmd_bench_vr(a) -> int:
+    from app.bench_vr import bench_vr
+
+    print(json.dumps(bench_vr([_size(s) for s in a.sizes.split(",")], a.frames, a.scene, a.audio_seconds)))
+    return 0
+
+
+def add_vr_commands(sub, bench_sub) -> None:
+    v = sub.add_parser("vr", help="the VR application (OpenVR headset, desktop window or headless)",
+                       description="Stand in a scene as an audio-visual avatar: stereo views, binaural audio, a "
+                       "robot that hears you. --backend auto picks OpenVR when a headset is there, the desktop "
+                       "window when a display is there, otherwise a short headless session that writes stereo "
+                       "frames, the binaural audio at your ears and the frame statistics to --out.")
+    v.add_argument("--backend", default="auto", choices=("auto", "openvr", "desktop", "headless"))
+    v.add_argument("--scene", default=None, help="scene spec (default: builtin:apartment)")
+    v.add_argument("--frames", type=int, default=None, help="stop after N frames (headless default: 180)")
+    v.add_argument("--size", default=None, help="eye size WxH (default: the headset's, else 512x512)")
+    v.add_argument("--rate", type=float, default=None, help="target frame rate, Hz (default: headset/display, "
+                   "headless 90)")
+    v.add_argument("--audio", default=None, choices=("offline", "live", "none"),
+                   help="offline: rendered by the frame clock (headless default); live: sound card / JACK")
+    v.add_argument("--audio-device", default=None, help="PortAudio device name or index for --audio live")
+    v.add_argument("--audio-only", action="store_true", help="no views at all (tracking and audio go on)")
+    v.add_argument("--robots", type=int, default=1, choices=(0, 1), help="robots in the scene (default: 1)")
+    v.add_argument("--msaa", action="store_true", help="4x multisampling (slower on a CPU)")
+    v.add_argument("--realtime", action="store_true", help="headless: pace frames to the wall clock")
+    v.add_argument("--record", default=None, metavar="FILE.npz", help="save the input for replay")
+    v.add_argument("--replay", default=None, metavar="FILE.npz", help="replay a recorded input (headless)")
+    v.add_argument("--write-frames", type=int, default=None, metavar="N",
+                   help="save every N-th stereo frame as PNG (headless default: 10; 0: none)")
+    v.add_argument("--out", default=None, help="output folder (headless default: out/vr)")
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--json", action="store_true", help="print one JSON object with the frame statistics")
+    v.set_defaults(func=cmd_vr)
+
+    b = bench_sub.add_parser("vr", help="stereo frames/s of the headless loop; audio xruns while it runs flat out")
+    b.add_argument("--sizes", default="512x512,1080x1200", help="eye sizes (default: %(default)s)")
+    b.add_argument("--frames", type=int, default=60, help="frames per size (default: %(default)s)")
+    b.add_argument("--scene", default="builtin:apartment")
+    b.add_argument("--audio-seconds", type=float, default=20.0,
+                   help="seconds of the live-audio run on a private JACK dummy server (0: skip)")
+    b.add_argument("--json", action="store_true", help="(always JSON)")
+    b.set_defaults(func=cmd_bench_vr)

@@ -1,0 +1,134 @@
+"""Audio for the VR loop: the user's ears and the robots' ears, with the user's voice at the avatar's mouth.
+
+- :class:`LiveAudio`: the real-time pipeline of ``app/audio_rt`` (a sound card or JACK; the microphone is the
+  voice). The loop hands it one pose frame per frame and never waits for it; what the user and robots heard is read
+  back from its rings.
+- :class:`OfflineAudio`: for headless sessions without an audio device. The same renderer, driven by the frame
+  clock instead of a sound card: after each frame it renders the blocks up to the frame's time, with poses
+  interpolated across them as the real-time side does. The voice is a recorded or synthesised signal.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from app.audio_rt.config import AudioConfig, AudioScene, SourceSpec
+from app.audio_rt.poses import mouth
+from app.vr.transforms import head_pose
+
+SOUNDING = ("standing_tv", "sink", "toilet", "washer", "fireplace", "piano")
+
+
+def scene_sources(scene, n: int = 2) -> list[tuple[str, SourceSpec]]:
+    """(object name, source) for up to ``n`` sounding objects of the scene (a TV, a sink...), looping."""
+    out = []
+    for cat in SOUNDING:
+        obj = next((o for o in scene.objects if o.category == cat), None)
+        if obj is not None and len(out) < n:
+            out.append((obj.name, SourceSpec(sound=f"{cat}/0", position=tuple(obj.position + [0, 0, 0.8]),
+                                              gain=0.5)))
+    return out
+
+
+def source_positions(scene, sources) -> list:
+    return [tuple(scene.object(name).position + [0, 0, 0.8]) for name, _ in sources]
+
+
+class OfflineAudio:
+    """Renders the user's and robots' ears block by block, following the frame clock."""
+
+    live = False
+
+    def __init__(self, scene, sources, robots: list, head: tuple, sample_rate: int = 48_000, block: int = 256,
+                 voice: np.ndarray | None = None):
+        from app.audio_rt.core import build_renderer
+
+        self.scene, self.sources = scene, sources
+        setup = AudioScene(spec=scene.spec, sources=[s for _, s in sources], robots=list(robots), head=tuple(head))
+        cfg = AudioConfig(sample_rate=sample_rate, block=block, mic=voice is not None)
+        self.r, _, self.mic, self.user, _ = build_renderer(setup, cfg, scene=scene)
+        self.sr, self.block = sample_rate, block
+        self.voice = None if voice is None else np.asarray(voice, np.float32)  # at sample_rate
+        self.voice_at = 0
+        self.samples = 0  # rendered so far
+        self.prev = None
+        self.ears = [[] for _ in self.r.listeners]  # per listener: list of (2, block) blocks
+
+    def update(self, t: float, head: np.ndarray, robots: list, speaking: bool = True) -> None:
+        """Render up to time ``t`` (s); head (4x4) and robots (x, y, z, yaw) are the poses at ``t``."""
+        hp = np.array(head_pose(head))
+        rb = np.array(robots, float).reshape(-1, 4)
+        prev = self.prev if self.prev is not None else (hp, rb)
+        end = int(round(t * self.sr))
+        pos = [np.array(p) for p in source_positions(self.scene, self.sources)]
+        for s, p in zip(self.r.sources, pos):
+            s.position = p
+        n_blocks = max(0, -(-(end - self.samples) // self.block))
+        for k in range(n_blocks):
+            a = (k + 1) / n_blocks
+            h = prev[0] + a * (hp - prev[0])
+            h[3] = prev[0][3] + a * ((hp[3] - prev[0][3] + 180) % 360 - 180)
+            self.r.set_listener(self.user, h[:3], h[3], h[4])
+            for lis, r0, r1 in zip(self.r.listeners[1:], prev[1], rb):
+                y = r0[3] + a * ((r1[3] - r0[3] + 180) % 360 - 180)
+                self.r.set_listener(lis, r0[:3] + a * (r1[:3] - r0[:3]), y)
+            if self.mic is not None:
+                m, fwd = mouth(h)
+                self.mic.position, self.mic.forward = m, fwd
+                blk = np.zeros(self.block, np.float32)
+                if speaking and self.voice is not None:
+                    part = self.voice[self.voice_at:self.voice_at + self.block]
+                    blk[:len(part)] = part
+                    self.voice_at = (self.voice_at + self.block) % max(len(self.voice), 1)
+                self.mic.push(blk)
+            for i, out in enumerate(self.r.render_block()):
+                self.ears[i].append(out.astype(np.float32))
+            self.samples += self.block
+        self.prev = (hp, rb)
+
+    def heard(self, listener: int = 0) -> np.ndarray:
+        """(2, n) float32 everything listener 0 (the user) or a robot (1..) heard so far."""
+        b = self.ears[listener]
+        return np.concatenate(b, axis=1) if b else np.zeros((2, 0), np.float32)
+
+    def close(self) -> list[str]:
+        return []
+
+
+class LiveAudio:
+    """The real-time pipeline (app/audio_rt) fed by the frame loop."""
+
+    live = True
+
+    def __init__(self, scene, sources, robots: list, head: tuple, device=None, sample_rate: int = 48_000,
+                 block: int = 256, mic: bool = True, mode: str = "process"):
+        from app.audio_rt.engine import AudioEngine
+
+        self.scene, self.sources = scene, sources
+        self.engine = AudioEngine(
+            AudioConfig(device=device, sample_rate=sample_rate, block=block, mic=mic, mode=mode),
+            AudioScene(spec=scene.spec, sources=[s for _, s in sources], robots=list(robots), head=tuple(head)))
+        self.info = self.engine.start()
+        self.doors = list(self.engine.scene.doors)
+        self.sr = sample_rate
+        self.ears = [[] for _ in range(self.engine.n_listeners)]
+        self.events: list[str] = []
+
+    def update(self, t: float, head: np.ndarray, robots: list, hands=None, speaking: bool = True) -> None:
+        fr = [self.scene.object(d).open_fraction for d in self.doors]
+        hp = None if hands is None else np.asarray(hands)[:, :3, 3].ravel()
+        self.engine.set_poses(head_pose(head), robots=robots, hands=hp,
+                              sources=source_positions(self.scene, self.sources), doors=fr)
+        for k, acc in enumerate(self.ears):
+            acc.append(self.engine.read_ears(k))
+        self.events += self.engine.poll()
+
+    def heard(self, listener: int = 0) -> np.ndarray:
+        b = self.ears[listener]
+        return np.concatenate(b, axis=1) if b else np.zeros((2, 0), np.float32)
+
+    def telemetry(self) -> dict:
+        return self.engine.telemetry()
+
+    def close(self) -> list[str]:
+        self.engine.stop()
+        return self.events
