@@ -3,7 +3,6 @@ PY      := .venv/bin/python
 REQHASH := $(shell cat requirements.txt pyproject.toml scripts/install-system.sh | sha1sum | cut -c1-12)
 STAMP   := .venv/.installed-$(REQHASH)
 export PYOPENGL_PLATFORM ?= egl
-export QT_QPA_PLATFORM ?= offscreen
 
 .PHONY: setup demo test test-slow test-all bench clean
 setup: $(STAMP)
@@ -16,23 +15,25 @@ $(STAMP): requirements.txt pyproject.toml scripts/install-system.sh
 	rm -f .venv/.installed-*
 	touch $@
 
+# the VR app: a headset if one is there, else a desktop window if there is a display, else a short headless session
 demo: setup
-	.venv/bin/sonicverse demo --out out/demo
+	.venv/bin/sonicverse vr --out out/demo
 
 test: setup
-	$(PY) -m pytest -q -m "not slow"
+	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q -m "not slow"
 
 test-slow: setup
-	$(PY) -m pytest -q -m slow
+	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q -m slow
 
 test-all: setup
-	$(PY) -m pytest -q
+	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q
 
 bench: setup
 	.venv/bin/sonicverse bench rays
 	.venv/bin/sonicverse bench audio --sources 64
 	.venv/bin/sonicverse bench audio --sources 256
 	.venv/bin/sonicverse bench accuracy --plot docs/accuracy.png
+	.venv/bin/sonicverse bench vr
 
 clean:
 	rm -rf out .pytest_cache

@@ -24,12 +24,22 @@ def has_display() -> bool:
 
 
 def headset_present() -> bool:
+    """OpenVR's cheap check (no runtime start); its client library's complaint about a missing runtime, printed
+    straight to file descriptor 2, is kept out of the auto choice's output."""
     try:
         import openvr
-
-        return bool(openvr.isHmdPresent())
+    except ImportError:
+        return False
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            return bool(openvr.isHmdPresent())
     except Exception:  # noqa: BLE001 - no runtime library: no headset
         return False
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def choose_backend(name: str) -> str:
