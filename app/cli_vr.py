@@ -91,8 +91,9 @@ def cmd_vr(a) -> int:
     backend = make_backend(backend_name, a, recording)
     with VRSession(cfg, backend) as s:
         if not a.json:
-            print(f"sonicverse vr: {backend_name} backend, {cfg.scene}, eyes {backend.width}x{backend.height} at "
-                  f"{backend.target_hz:g} Hz" + (", audio only" if a.audio_only else ""), file=sys.stderr)
+            why = " (no VR headset, no display)" if a.backend == "auto" and headless else ""
+            print(f"sonicverse vr: {backend_name} backend{why}, {cfg.scene}, eyes {backend.width}x{backend.height} "
+                  f"at {backend.target_hz:g} Hz" + (", audio only" if a.audio_only else ""), file=sys.stderr)
         s.run(frames=frames, out=out)
         if a.record:
             s.recording.save(a.record)

@@ -38,9 +38,9 @@ def test_head_pose_round_trip_and_nan(rng):
     for _ in range(20):
         p = (*rng.uniform(-5, 5, 3), rng.uniform(-179, 179), rng.uniform(-80, 80))
         assert np.allclose(head_pose(look_matrix(*p)), p, atol=1e-9)
-    # yaw 90 faces +y; the camera's x axis (right) is then -x, so the left ear points to -x... no: to +y at yaw 0
     m = look_matrix(0, 0, 0, 0)
-    assert np.allclose(-m[:3, 0], [0, 1, 0])  # left = -right points to +y at yaw 0
+    assert np.allclose(-m[:3, 0], [0, 1, 0])  # at yaw 0 the left ear (-right) points to +y
+    assert np.allclose(-look_matrix(0, 0, 0, 90)[:3, 2], [0, 1, 0])  # yaw 90 faces +y
     bad = np.eye(4)
     bad[0, 3] = np.nan
     with pytest.raises(PoseError):
@@ -291,7 +291,7 @@ def test_robot_camera_sees_the_avatar_but_the_user_does_not_see_their_body():
     from sonicverse_core.scene.spec import load_scene
     from sonicverse_core.sensors.camera import camera_matrix
 
-    from app.scene.visual import SHIRT, SKIN, VisualScene
+    from app.scene.visual import SHIRT, VisualScene
 
     sc = load_scene(SHOEBOX)
     v = VisualScene(sc, 96, 96, robots=1)
@@ -306,7 +306,6 @@ def test_robot_camera_sees_the_avatar_but_the_user_does_not_see_their_body():
         away = v.render_camera(camera_matrix(1.5, 2.0, 0.55, 180.0))
         own = v.render_eye(head)
         assert shirt(facing) > 0.02 and shirt(away) == 0.0 and shirt(own) == 0.0
-        assert SKIN  # the head is drawn in skin colour for robots
     finally:
         v.close()
 
@@ -403,6 +402,10 @@ def test_vr_command_errors_exit_2(cli, tmp_path):
     assert "Traceback" not in r.stderr
     r = cli("vr", "--backend", "headless", "--size", "10x10", check_rc=2)
     assert "eye size" in r.stderr
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")}
+    p = subprocess.run([sys.executable, "-m", "app.cli", "vr", "--backend", "desktop"], capture_output=True,
+                       text=True, env=env, cwd=Path(__file__).parents[1], timeout=120)
+    assert p.returncode == 2 and "no display" in p.stderr and "Traceback" not in p.stderr
 
 
 def test_frame_input_is_what_every_backend_returns():

@@ -9,6 +9,8 @@
 """
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from app.audio_rt.config import AudioConfig, AudioScene, SourceSpec
@@ -27,6 +29,26 @@ def scene_sources(scene, n: int = 2) -> list[tuple[str, SourceSpec]]:
             out.append((obj.name, SourceSpec(sound=f"{cat}/0", position=tuple(obj.position + [0, 0, 0.8]),
                                               gain=0.5)))
     return out
+
+
+class EarLog:
+    """What one listener heard, kept in memory up to ``keep_s`` seconds (the oldest blocks are dropped: an hour of
+    stereo float32 at 48 kHz would be 1.4 GB)."""
+
+    def __init__(self, sample_rate: int, keep_s: float = 600.0):
+        self.blocks: deque[np.ndarray] = deque()
+        self.n, self.cap = 0, int(keep_s * sample_rate)
+
+    def add(self, block: np.ndarray) -> None:
+        if block.shape[-1] == 0:
+            return
+        self.blocks.append(np.asarray(block, np.float32))
+        self.n += block.shape[-1]
+        while self.n - self.blocks[0].shape[-1] >= self.cap:
+            self.n -= self.blocks.popleft().shape[-1]
+
+    def heard(self) -> np.ndarray:
+        return np.concatenate(self.blocks, axis=1) if self.blocks else np.zeros((2, 0), np.float32)
 
 
 def source_positions(scene, sources) -> list:
@@ -51,7 +73,7 @@ class OfflineAudio:
         self.voice_at = 0
         self.samples = 0  # rendered so far
         self.prev = None
-        self.ears = [[] for _ in self.r.listeners]  # per listener: list of (2, block) blocks
+        self.ears = [EarLog(sample_rate) for _ in self.r.listeners]
 
     def update(self, t: float, head: np.ndarray, robots: list, speaking: bool = True) -> None:
         """Render up to time ``t`` (s); head (4x4) and robots (x, y, z, yaw) are the poses at ``t``."""
@@ -80,15 +102,14 @@ class OfflineAudio:
                     blk[:len(part)] = part
                     self.voice_at = (self.voice_at + self.block) % max(len(self.voice), 1)
                 self.mic.push(blk)
-            for i, out in enumerate(self.r.render_block()):
-                self.ears[i].append(out.astype(np.float32))
+            for log, out in zip(self.ears, self.r.render_block()):
+                log.add(out)
             self.samples += self.block
         self.prev = (hp, rb)
 
     def heard(self, listener: int = 0) -> np.ndarray:
-        """(2, n) float32 everything listener 0 (the user) or a robot (1..) heard so far."""
-        b = self.ears[listener]
-        return np.concatenate(b, axis=1) if b else np.zeros((2, 0), np.float32)
+        """(2, n) float32: what listener 0 (the user) or a robot (1..) heard so far (the last 10 minutes at most)."""
+        return self.ears[listener].heard()
 
     def close(self) -> list[str]:
         return []
@@ -110,7 +131,7 @@ class LiveAudio:
         self.info = self.engine.start()
         self.doors = list(self.engine.scene.doors)
         self.sr = sample_rate
-        self.ears = [[] for _ in range(self.engine.n_listeners)]
+        self.ears = [EarLog(sample_rate) for _ in range(self.engine.n_listeners)]
         self.events: list[str] = []
 
     def update(self, t: float, head: np.ndarray, robots: list, hands=None, speaking: bool = True) -> None:
@@ -118,13 +139,12 @@ class LiveAudio:
         hp = None if hands is None else np.asarray(hands)[:, :3, 3].ravel()
         self.engine.set_poses(head_pose(head), robots=robots, hands=hp,
                               sources=source_positions(self.scene, self.sources), doors=fr)
-        for k, acc in enumerate(self.ears):
-            acc.append(self.engine.read_ears(k))
+        for k, log in enumerate(self.ears):
+            log.add(self.engine.read_ears(k))
         self.events += self.engine.poll()
 
     def heard(self, listener: int = 0) -> np.ndarray:
-        b = self.ears[listener]
-        return np.concatenate(b, axis=1) if b else np.zeros((2, 0), np.float32)
+        return self.ears[listener].heard()
 
     def telemetry(self) -> dict:
         return self.engine.telemetry()

@@ -9,6 +9,8 @@ headset's, so tasks and recordings do not know which backend ran.
 from __future__ import annotations
 
 import math
+import os
+import sys
 import time
 
 import numpy as np
@@ -39,10 +41,12 @@ class DesktopBackend:
         self.QtCore, self.QtGui = QtCore, QtGui
         self.app = QtWidgets.QApplication.instance()
         if self.app is None:
-            try:
-                self.app = QtWidgets.QApplication(["sonicverse"])
-            except Exception as exc:  # noqa: BLE001 - Qt aborts or raises without a display
-                raise DeviceError(f"no display for the desktop backend ({exc}); use --backend headless") from None
+            if sys.platform.startswith("linux") and not any(
+                    os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")):
+                # Qt would abort the whole process (qFatal), not raise
+                raise DeviceError("no display for the desktop backend (neither DISPLAY nor WAYLAND_DISPLAY is set); "
+                                  "run it in a desktop session or under xvfb-run, or use --backend headless")
+            self.app = QtWidgets.QApplication(["sonicverse"])
         from app.scene.eyes import default_eyes
 
         self.width, self.height, self.n_eyes = width, height, eyes

@@ -162,12 +162,12 @@ class VRSession:
         self._last_in = t_in
         if f.quit:
             return False
-        self.recording.add(f)
         try:
             self.step(f)
         except SonicverseError as exc:  # a bad input frame (NaN pose...) is reported and skipped: the session lives
             self.events.append(f"frame {f.index}: {exc}")
             return True
+        self.recording.add(f)  # the frames that were simulated: a replay goes through the same steps
         robots = self._robots()
         if self.audio is not None:
             if self.audio.live:
