@@ -266,6 +266,7 @@ def test_bad_recordings_and_bad_frames(tmp_path):
                    HeadlessBackend(nan_at_3)) as s:
         s.run(frames=6)  # the session survives a NaN pose: reported, frame skipped
         assert len(s.trajectory) == 5 and any("frame 3" in e and "not finite" in e for e in s.events)
+        assert len(s.recording.frames) == 5  # the skipped frame is not recorded: the recording replays
 
 
 def test_audio_only_mode_imports_no_renderer(tmp_path):
