@@ -19,6 +19,7 @@ import numpy as np
 
 from app.scene.eyes import IPD, eye_offsets
 from sonicverse_core.errors import ConfigError
+from sonicverse_core.scene.model import yaw_pose
 from sonicverse_core.sensors.camera import RenderScene, camera_matrix as head_matrix  # sets PYOPENGL_PLATFORM=egl
 
 import pyrender  # noqa: E402
@@ -65,18 +66,15 @@ def _colour_only_reader(self, scene, flags):
     return np.flip(np.frombuffer(buf, np.uint8).reshape(h, w, 3), 0), None
 
 
-def _sampled_framebuffer(samples: int):
-    def configure(self):
-        orig = _pr.glRenderbufferStorageMultisample
-        if samples:
-            return _pr.Renderer._configure_main_framebuffer(self)
-        # a plain (single-sample) storage under the multisample names: the draw and read target are the same
-        _pr.glRenderbufferStorageMultisample = lambda tgt, n, fmt, w, h: GL.glRenderbufferStorage(tgt, fmt, w, h)
-        try:
-            return _pr.Renderer._configure_main_framebuffer(self)
-        finally:
-            _pr.glRenderbufferStorageMultisample = orig
-    return configure
+def _single_sample_framebuffer(self):
+    """pyrender's framebuffer set-up with plain (single-sample) storage under the multisample names: the draw and
+    the read target are then the same."""
+    orig = _pr.glRenderbufferStorageMultisample
+    _pr.glRenderbufferStorageMultisample = lambda tgt, n, fmt, w, h: GL.glRenderbufferStorage(tgt, fmt, w, h)
+    try:
+        return _pr.Renderer._configure_main_framebuffer(self)
+    finally:
+        _pr.glRenderbufferStorageMultisample = orig
 
 
 def offscreen_renderer(width: int, height: int, msaa: bool = True, colour_only: bool = False):
@@ -86,7 +84,7 @@ def offscreen_renderer(width: int, height: int, msaa: bool = True, colour_only: 
     inner = r._renderer
     inner._ms = msaa
     if not msaa:
-        inner._configure_main_framebuffer = types.MethodType(_sampled_framebuffer(0), inner)
+        inner._configure_main_framebuffer = types.MethodType(_single_sample_framebuffer, inner)
     if colour_only:
         inner._read_main_framebuffer = types.MethodType(_colour_only_reader, inner)
     return r
@@ -149,11 +147,7 @@ class VisualScene:
                 if ok:
                     self.scene.set_pose(self.avatar[name], hands[k])
         for node, rb in zip(self.robot_nodes, robots):
-            m = np.eye(4)
-            a = np.radians(rb[2])
-            m[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-            m[:3, 3] = (rb[0], rb[1], self.core.floor_z + 0.21)
-            self.scene.set_pose(node, m)
+            self.scene.set_pose(node, yaw_pose(rb[0], rb[1], self.core.floor_z + 0.21, rb[2]))
 
     def _own_body(self, visible: bool) -> None:
         for k in ("head", "body"):

@@ -14,7 +14,7 @@ from collections import deque
 import numpy as np
 
 from app.audio_rt.config import AudioConfig, AudioScene, SourceSpec
-from app.audio_rt.poses import mouth
+from app.audio_rt.poses import mouth, wrap180
 from app.vr.transforms import head_pose
 
 SOUNDING = ("standing_tv", "sink", "toilet", "washer", "fireplace", "piano")
@@ -55,7 +55,15 @@ def source_positions(scene, sources) -> list:
     return [tuple(scene.object(name).position + [0, 0, 0.8]) for name, _ in sources]
 
 
-class OfflineAudio:
+class _Ears:
+    ears: list
+
+    def heard(self, listener: int = 0) -> np.ndarray:
+        """(2, n) float32: what listener 0 (the user) or a robot (1..) heard so far (the last 10 minutes at most)."""
+        return self.ears[listener].heard()
+
+
+class OfflineAudio(_Ears):
     """Renders the user's and robots' ears block by block, following the frame clock."""
 
     live = False
@@ -88,10 +96,10 @@ class OfflineAudio:
         for k in range(n_blocks):
             a = (k + 1) / n_blocks
             h = prev[0] + a * (hp - prev[0])
-            h[3] = prev[0][3] + a * ((hp[3] - prev[0][3] + 180) % 360 - 180)
+            h[3] = prev[0][3] + a * wrap180(hp[3] - prev[0][3])
             self.r.set_listener(self.user, h[:3], h[3], h[4])
             for lis, r0, r1 in zip(self.r.listeners[1:], prev[1], rb):
-                y = r0[3] + a * ((r1[3] - r0[3] + 180) % 360 - 180)
+                y = r0[3] + a * wrap180(r1[3] - r0[3])
                 self.r.set_listener(lis, r0[:3] + a * (r1[:3] - r0[:3]), y)
             if self.mic is not None:
                 m, fwd = mouth(h)
@@ -107,15 +115,11 @@ class OfflineAudio:
             self.samples += self.block
         self.prev = (hp, rb)
 
-    def heard(self, listener: int = 0) -> np.ndarray:
-        """(2, n) float32: what listener 0 (the user) or a robot (1..) heard so far (the last 10 minutes at most)."""
-        return self.ears[listener].heard()
-
     def close(self) -> list[str]:
         return []
 
 
-class LiveAudio:
+class LiveAudio(_Ears):
     """The real-time pipeline (app/audio_rt) fed by the frame loop."""
 
     live = True
@@ -142,9 +146,6 @@ class LiveAudio:
         for k, log in enumerate(self.ears):
             log.add(self.engine.read_ears(k))
         self.events += self.engine.poll()
-
-    def heard(self, listener: int = 0) -> np.ndarray:
-        return self.ears[listener].heard()
 
     def telemetry(self) -> dict:
         return self.engine.telemetry()

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from app.vr.frame import BUTTON_TRIGGER, RIGHT, FrameInput, Recording
-from app.vr.transforms import look_matrix
+from app.vr.transforms import head_pose, look_matrix
 from sonicverse_core.errors import ConfigError
 
 EYE_HEIGHT = 1.6  # m above the floor
@@ -21,7 +21,7 @@ WALK_SPEED = 1.0  # m/s
 
 def hand_poses(head: np.ndarray) -> np.ndarray:
     """(2, 4, 4) hands held in front of the body at waist height (left, right), from a head pose."""
-    yaw = math.atan2(-head[1, 2], -head[0, 2])
+    yaw = math.radians(head_pose(head)[3])
     fwd, left = np.array([math.cos(yaw), math.sin(yaw), 0.0]), np.array([-math.sin(yaw), math.cos(yaw), 0.0])
     hands = np.tile(head, (2, 1, 1))
     for k, side in enumerate((0.22, -0.22)):

@@ -21,7 +21,7 @@ import numpy as np
 
 from app.tasks.roam import FrameTask, FreeRoam
 from app.vr.frame import FrameInput, FrameStats, Recording
-from app.vr.transforms import head_pose
+from app.vr.transforms import head_pose, look_matrix
 from sonicverse_core.errors import ConfigError, SonicverseError
 
 WARMUP_FRAMES = 2  # not counted in the frame statistics (their intervals include the first render and audio block)
@@ -180,9 +180,7 @@ class VRSession:
             self.views.sync(f.head, f.hands, f.hands_valid, rb)
             views = self.views.render_views(f.head, self.backend.eye_to_head, self.backend.projections)
             if self.cfg.robot_camera and self.world is not None:
-                from sonicverse_core.sensors.camera import camera_matrix
-
-                self.robot_view = self.views.render_camera(camera_matrix(*self.world.camera))
+                self.robot_view = self.views.render_camera(look_matrix(*self.world.camera))
             self.last_views = views
             if self.cfg.write_frames and self._out is not None and f.index % self.cfg.write_frames == 0:
                 self._write_frame(f.index, views)

@@ -14,21 +14,14 @@ import math
 import numpy as np
 
 from sonicverse_core.errors import PoseError
+# the play area's floor centre placed in the scene: a position and a yaw about z
+from sonicverse_core.scene.model import yaw_pose as origin_matrix  # noqa: F401
 from sonicverse_core.sensors.camera import camera_matrix as look_matrix  # noqa: F401  (numpy only; no GL import)
 
 SV_FROM_VR = np.array([[0.0, 0.0, -1.0, 0.0],
                        [-1.0, 0.0, 0.0, 0.0],
                        [0.0, 1.0, 0.0, 0.0],
                        [0.0, 0.0, 0.0, 1.0]])
-
-
-def origin_matrix(x: float, y: float, z: float, yaw_deg: float) -> np.ndarray:
-    """4x4 placement of the play area's floor centre in the scene, turned by ``yaw_deg`` about z."""
-    a = math.radians(yaw_deg)
-    m = np.eye(4)
-    m[:2, :2] = [[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]
-    m[:3, 3] = (x, y, z)
-    return m
 
 
 def hmd34(m) -> np.ndarray:
