@@ -94,3 +94,21 @@ def test_sampling_is_seeded(apartment):
     b = g.sample(np.random.default_rng(5), 10)
     np.testing.assert_array_equal(a, b)
     assert np.all(g.is_navigable(a))
+
+
+def test_crossings_agree_between_embree_and_the_numpy_reference(apartment):
+    """The segment walk's Embree fast path finds the same surfaces, in the same order, as the float64 reference."""
+    s = load_scene("builtin:apartment?seed=3")
+    e, n = SceneRayCaster(s), SceneRayCaster(s, backend="numpy")
+    lo, hi = s.static_mesh().vertices.min(0), s.static_mesh().vertices.max(0)
+    rng = np.random.default_rng(7)
+    a, b = rng.uniform(lo + 0.1, hi - 0.1, (40, 3)), rng.uniform(lo + 0.1, hi - 0.1, (40, 3))
+    ce, cn = e.crossings(a, b), n.crossings(a, b)
+    assert len(ce.ray) > 40  # walls, furniture and doors are crossed
+    keep = lambda c: np.abs(c.distance - np.linalg.norm(b - a, axis=1)[c.ray]) > 1e-3  # noqa: E731 - not at an end
+    ke, kn = keep(ce), keep(cn)
+    np.testing.assert_array_equal(ce.ray[ke], cn.ray[kn])  # as many crossings per segment, in segment order
+    np.testing.assert_allclose(ce.distance[ke], cn.distance[kn], atol=1e-4)
+    for r in range(len(a)):  # the same surfaces (touching parts at one distance may come in either order)
+        assert sorted(ce.part[ke][ce.ray[ke] == r]) == sorted(cn.part[kn][cn.ray[kn] == r])
+        assert sorted(ce.dynamic[ke][ce.ray[ke] == r]) == sorted(cn.dynamic[kn][cn.ray[kn] == r])

@@ -9,11 +9,12 @@ from sonicverse_core.errors import ConfigError
 
 # a few shared-memory telemetry slots (int64)
 CALLBACKS, XRUNS, IN_OVERFLOW, OUT_UNDERFLOW, ERRORS, STATE, FAULTS, FRAMES, POSE_FRAMES, POSE_TORN, PID, \
-    ERROR_SEQ, PRIMING, N_TELE = range(14)
+    ERROR_SEQ, PRIMING, ROBOT_BLOCKS, ROBOT_SKIPPED, N_TELE = range(16)
 # float64 slots
 LAT_IN, LAT_OUT, LAST_CALLBACK, SAMPLE_RATE, N_TELEF = range(5)
 STARTING, RUNNING, STOPPED, FAILED, LOST = range(5)  # the worker's STATE slot
 DURATIONS = 1 << 16  # callback durations kept (about 5.8 min at 48 kHz / 256)
+XRUN_LOG = 256  # callback index of the newest xruns (when they happened, for study logs and diagnosis)
 
 
 @dataclass(frozen=True)

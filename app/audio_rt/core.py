@@ -32,6 +32,7 @@ def shared_layout(cfg: AudioConfig, n_listeners: int, pose: PoseLayout) -> Layou
     L.add("telef", C.N_TELEF, np.float64)
     L.add("dur", (1, C.DURATIONS), np.float32)
     L.add("dur_head", 1, np.int64)
+    L.add("xrun_at", C.XRUN_LOG, np.int64)
     L.add("error", ERROR_BYTES, np.uint8)
     L.add("pose_seq", 1, np.int64)
     L.add("pose", pose.size, np.float64)
@@ -50,6 +51,7 @@ class Shared:
         v = layout.views(buf)
         self.v = v
         self.tele, self.telef, self.error = v["tele"], v["telef"], v["error"]
+        self.xrun_at = v["xrun_at"]  # callback index of xrun k at [k % XRUN_LOG]; k counts up to tele[XRUNS]
         self.durations = Ring(v["dur"], v["dur_head"])
         self.poses = SeqLock(v["pose_seq"], v["pose"])
         self.mic = Ring(v["mic"], v["mic_head"])
@@ -66,9 +68,11 @@ class Shared:
         return raw[: raw.index(0) if 0 in raw else len(raw)].decode("utf-8", "replace")
 
 
-def build_renderer(scene_setup: AudioScene, cfg: AudioConfig, scene=None):
-    """(renderer, scene, mic source or None, door names) for the audio side; ``scene``: an already loaded core
-    scene to render (shared with the caller, e.g. the headless VR loop), else ``scene_setup.spec`` is loaded."""
+def build_renderer(scene_setup: AudioScene, cfg: AudioConfig, scene=None, role: str = "all"):
+    """(renderer, scene, mic source or None, user listener or None, door names) for the audio side; ``scene``: an
+    already loaded core scene to render (shared with the caller, e.g. the headless VR loop), else
+    ``scene_setup.spec`` is loaded. ``role``: which listeners it renders: 'all' (the user first, then the robots),
+    'user' (the stream's callback when robots render in their own process) or 'robots'."""
     from app.cli_audio import load_sound
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
 
@@ -101,8 +105,11 @@ def build_renderer(scene_setup: AudioScene, cfg: AudioConfig, scene=None):
         m, fwd = mouth(head)
         mic = r.add_source(live=True, position=m, gain=cfg.mic_gain, directivity=scene_setup.mic_directivity,
                            forward=fwd)
-    user = r.add_listener(head[:3], head[3], head[4], exclude=[mic] if mic is not None and not cfg.sidetone else ())
-    for rb in scene_setup.robots:
+    user = None
+    if role != "robots":
+        user = r.add_listener(head[:3], head[3], head[4],
+                              exclude=[mic] if mic is not None and not cfg.sidetone else ())
+    for rb in scene_setup.robots if role != "user" else ():
         r.add_listener(rb[:3], rb[3])
     doors = [d.name for d in scene.doors] if scene is not None else []
     return r, scene, mic, user, doors
@@ -112,13 +119,13 @@ class AudioCore:
     """Owns the renderer on the audio side and implements the stream callback."""
 
     def __init__(self, cfg: AudioConfig, scene_setup: AudioScene, shared: Shared, pose_layout: PoseLayout,
-                 renderer=None):
+                 renderer=None, role: str = "all"):
         self.cfg, self.sh, self.L = cfg, shared, pose_layout
         if renderer is None:
-            renderer = build_renderer(scene_setup, cfg)
+            renderer = build_renderer(scene_setup, cfg, role=role)
         self.r, self.scene, self.mic, self.user, self.doors = renderer
         self.n_scene = len(scene_setup.sources)
-        self.robots = self.r.listeners[1:]
+        self.robots = [lis for lis in self.r.listeners if lis is not self.user]
         B = cfg.block
         self.block_s = B / cfg.sample_rate
         self.interp = PoseInterpolator(pose_layout)
@@ -162,7 +169,8 @@ class AudioCore:
         v = self.interp.advance(self.block_s)
         r = self.r
         head = v[L.HEAD]
-        r.set_listener(self.user, head[:3], head[3], head[4])
+        if self.user is not None:
+            r.set_listener(self.user, head[:3], head[3], head[4])
         for k, lis in enumerate(self.robots):
             rb = v[L.ROBOTS.start + 4 * k: L.ROBOTS.start + 4 * k + 4]
             r.set_listener(lis, rb[:3], rb[3], 0.0)
@@ -175,7 +183,7 @@ class AudioCore:
             r._pos[self.mic.index] = m
             r._fwd[self.mic.index] = fwd
             side = v[L.SIDETONE]
-            if (side > 0) != (self.sidetone > 0):
+            if (side > 0) != (self.sidetone > 0) and self.user is not None:
                 r.set_heard(self.user, self.mic, side > 0)
             self.sidetone = side
         if self.doors:  # doors take the newest frame's state, not a ramp: one geometry rebuild per change
@@ -194,11 +202,25 @@ class AudioCore:
             self.r.occlusion.prepare()
         self.door_change = False
 
+    def render_robots(self, mic_block: np.ndarray | None) -> None:
+        """One block for the robot listeners only (role 'robots': their own process, paced by the callback's
+        microphone ring): their ears go to rings 1.. exactly as when the callback renders them."""
+        if self.mic is not None:
+            self.mic.pending = mic_block
+        self._apply_poses()
+        outs = self.r.render_block()
+        for k, o in enumerate(outs):
+            self.sh.ears[1 + k].write(o)
+        if self.door_change:
+            self._apply_doors()
+
     def callback(self, indata, outdata, frames, time_info, status) -> None:
         t0 = time.perf_counter()
         sh, tele = self.sh, self.sh.tele
+        mic_written = False
         try:
             if status:
+                sh.xrun_at[tele[C.XRUNS] % C.XRUN_LOG] = tele[C.CALLBACKS]
                 tele[C.XRUNS] += 1
                 if status.input_overflow:
                     tele[C.IN_OVERFLOW] += 1
@@ -214,6 +236,7 @@ class AudioCore:
             if self.mic is not None:
                 np.multiply(indata[:, self.cfg.mic_channel], 1.0, out=self.mic_block)
                 sh.mic.write(self.mic_block[None])
+                mic_written = True
                 self.mic.pending = self.mic_block
             self._apply_poses()
             outs = self.r.render_block()
@@ -234,6 +257,8 @@ class AudioCore:
                 self._apply_doors()
         except Exception as exc:  # noqa: BLE001 - the callback must never raise into PortAudio
             outdata.fill(0.0)
+            if self.mic is not None and not mic_written:  # the mic ring stays in step with the frame counter
+                sh.mic.write(self.zero_in[:, :1].T)
             tele[C.ERRORS] += 1
             try:
                 sh.set_error(f"{type(exc).__name__}: {exc}")

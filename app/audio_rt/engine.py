@@ -24,6 +24,7 @@ import numpy as np
 from app.audio_rt import config as C
 from app.audio_rt.config import AudioConfig, AudioScene
 from app.audio_rt.core import Shared, shared_layout
+from app.audio_rt.heap import ENV as HEAP_ENV, keep_heap
 from app.audio_rt.poses import PoseLayout
 from app.audio_rt.shared import SharedBlock
 from sonicverse_core import errors as E
@@ -49,7 +50,7 @@ class AudioEngine:
         self.info: dict | None = None
         self.state = "stopped"
         self.events: list[str] = []
-        self._proc = self._thread = self._conn = self._block = None
+        self._proc = self._thread = self._conn = self._block = self._rproc = self._rconn = None
         self._errors_seen = 0
         self._t0 = time.monotonic()
         self._door_values = np.array(scene.door_open if scene.door_open else [1.0] * len(scene.doors), float)
@@ -62,9 +63,11 @@ class AudioEngine:
             return self.info
         cfg = self.cfg
         thread = cfg.mode == "thread"
+        keep_heap()  # this process runs the frame loop: its freed memory must not stall the audio (heap.py)
         self._block = SharedBlock(self.layout.size, private=thread)
         self.sh = Shared(self.layout, self._block.buf, self.n_listeners)
         self._errors_seen = 0
+        rmsg = None
         if thread:
             parent, child = mp.Pipe()
             from app.audio_rt.worker import run
@@ -73,21 +76,24 @@ class AudioEngine:
                                             args=(child, cfg, self.scene, None, self._block.buf))
             self._thread.start()
         else:
-            # a fresh interpreter (not fork: the caller may hold GL contexts or threads; not multiprocessing's
-            # spawn, which re-imports the caller's main script), talking over a socket pair
-            a, b = socket.socketpair()
-            self._proc = subprocess.Popen(
-                [sys.executable, "-c", "import app.audio_rt.worker as w; w.main()", str(b.fileno())],
-                pass_fds=(b.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                env={**os.environ, **_SINGLE_THREADED})
-            b.close()
-            parent = Connection(a.detach())
-            parent.send((cfg, self.scene, self._block.path))
+            # the robots render in a process of their own, the callback's renders the user's ears only (worker.py)
+            role, parent = ("user" if self.scene.robots else "all"), None
+            if role == "user":  # ready (warmed up) before the stream starts: the robots render from its first block
+                self._rproc, self._rconn = self._spawn((cfg, self.scene, self._block.path, "robots"))
+                rmsg = self._wait(cfg.start_timeout, self._rconn, self._rproc)
+            if role == "all" or (rmsg is not None and rmsg[0] == "ready"):
+                self._proc, parent = self._spawn((cfg, self.scene, self._block.path, role))
         self._conn = parent
         try:
-            msg = self._wait(cfg.start_timeout)
+            msg = self._wait(cfg.start_timeout) if parent is not None else None
         finally:
-            self._block.unlink()  # both sides have it mapped; nothing is left in /dev/shm whatever happens
+            self._block.unlink()  # all sides have it mapped; nothing is left in /dev/shm whatever happens
+        if self._rconn is not None and (rmsg is None or rmsg[0] != "ready"):
+            self._kill()
+            self.state = "failed"
+            if rmsg is None:
+                raise E.DeviceError("the robot listeners' audio process did not start")
+            raise getattr(E, rmsg[1], E.DeviceError)(rmsg[2])
         if msg is None:
             self._kill()
             raise E.DeviceError(f"the audio worker did not start within {cfg.start_timeout:.0f} s")
@@ -95,6 +101,7 @@ class AudioEngine:
             self._kill()
             self.state = "failed"
             raise getattr(E, msg[1], E.DeviceError)(msg[2])
+        msg[1]["robot_listeners"] = "own process" if self._rconn is not None else "in the callback"
         self.info, self.state = msg[1], "running"
         self._mark = None
         self.opens += 1
@@ -102,6 +109,19 @@ class AudioEngine:
         for r in self.sh.ears:
             r.skip_to_end()
         return self.info
+
+    def _spawn(self, payload) -> tuple[subprocess.Popen, Connection]:
+        """A worker in a fresh interpreter (not fork: the caller may hold GL contexts or threads; not
+        multiprocessing's spawn, which re-imports the caller's main script), talking over a socket pair."""
+        a, b = socket.socketpair()
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "import app.audio_rt.worker as w; w.main()", str(b.fileno())],
+            pass_fds=(b.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+            env={**os.environ, **_SINGLE_THREADED, **HEAP_ENV})
+        b.close()
+        conn = Connection(a.detach())
+        conn.send(payload)
+        return proc, conn
 
     def stop(self) -> None:
         """Stop the stream and the worker (a worker that does not answer is killed)."""
@@ -115,6 +135,12 @@ class AudioEngine:
                     m = self._wait(deadline - time.monotonic())
                     if m is None or m[0] in ("stopped", "lost"):
                         break
+            except (OSError, EOFError):
+                pass
+        if self._rconn is not None:
+            try:
+                self._rconn.send(("stop",))
+                self._wait(5.0, self._rconn, self._rproc)
             except (OSError, EOFError):
                 pass
         self._kill()
@@ -141,17 +167,29 @@ class AudioEngine:
         if self._conn is not None:
             self._conn.close()
             self._conn = None
+        if self._rproc is not None:
+            try:
+                self._rproc.wait(timeout=3.0)
+            except subprocess.TimeoutExpired:
+                self._rproc.kill()
+                self._rproc.wait(timeout=3.0)
+            self._rproc = None
+        if self._rconn is not None:
+            self._rconn.close()
+            self._rconn = None
 
-    def _wait(self, timeout: float):
-        """The worker's next message, or None after ``timeout`` s or when the worker died without one."""
+    def _wait(self, timeout: float, conn=None, proc=None):
+        """The next message of the stream's worker (or of ``conn``/``proc``), or None after ``timeout`` s or when
+        the worker died without one."""
+        conn, proc = (self._conn, self._proc) if conn is None else (conn, proc)
         deadline = time.monotonic() + max(timeout, 0.0)
         while True:
             try:
-                if self._conn.poll(min(0.05, max(deadline - time.monotonic(), 0.0))):
-                    return self._conn.recv()
+                if conn.poll(min(0.05, max(deadline - time.monotonic(), 0.0))):
+                    return conn.recv()
             except (EOFError, OSError):
                 return None
-            if self._proc is not None and self._proc.poll() is not None and not self._conn.poll(0):
+            if proc is not None and proc.poll() is not None and not conn.poll(0):
                 return None
             if time.monotonic() >= deadline:
                 return None
@@ -205,6 +243,10 @@ class AudioEngine:
             if self.state == "running" and self._proc is not None and self._proc.poll() is not None:
                 self.state = "lost"
                 new.append(f"the audio worker exited (code {self._proc.returncode}); call reopen() to resume")
+            if self.state == "running" and self._rproc is not None and self._rproc.poll() is not None:
+                self.state = "lost"
+                new.append(f"the robot listeners' audio process exited (code {self._rproc.returncode}); "
+                           f"call reopen() to resume")
         if hasattr(self, "sh"):
             n = int(self.sh.tele[C.ERRORS])
             if n > self._errors_seen:
@@ -236,23 +278,41 @@ class AudioEngine:
             self.poll()
         return int(self.sh.tele[C.CALLBACKS]) - c0
 
+    def wait_settled(self, quiet: int = 100, timeout: float = 5.0) -> float:
+        """Wait until ``quiet`` callbacks in a row ran without an xrun (a change of the audio server's graph, such
+        as wiring a loopback, may cost the cycle in which it happens); returns the seconds it took."""
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            x = int(self.sh.tele[C.XRUNS])
+            if self.wait_callbacks(quiet, timeout) < quiet:
+                break
+            if int(self.sh.tele[C.XRUNS]) == x:
+                break
+        return time.monotonic() - t0
+
     def telemetry(self) -> dict:
         """Callback count and duration (median, p99, max), xruns from PortAudio's status flags, reported latency,
         callback errors, pose frames received; counted since :meth:`mark` (or the start)."""
         t, f = self.sh.tele.copy(), self.sh.telef
         m = getattr(self, "_mark", None)
         if m is not None:
-            for k in (C.CALLBACKS, C.XRUNS, C.IN_OVERFLOW, C.OUT_UNDERFLOW, C.ERRORS, C.POSE_FRAMES, C.POSE_TORN):
+            for k in (C.CALLBACKS, C.XRUNS, C.IN_OVERFLOW, C.OUT_UNDERFLOW, C.ERRORS, C.POSE_FRAMES, C.POSE_TORN,
+                      C.ROBOT_BLOCKS, C.ROBOT_SKIPPED):
                 t[k] -= m[k]
         n = int(self.sh.durations.head[0])
         first = max(n - min(int(t[C.CALLBACKS]), C.DURATIONS), 0)
         idx = np.arange(first, n) % C.DURATIONS
         d = self.sh.durations.data[0, idx].astype(np.float64) * 1000
         block_ms = 1000 * self.cfg.block / self.cfg.sample_rate
+        x1 = int(self.sh.tele[C.XRUNS])
+        x0 = max(x1 - int(t[C.XRUNS]), x1 - C.XRUN_LOG, 0)
+        c0 = int(m[C.CALLBACKS]) if m is not None else 0
+        xrun_s = [round((int(self.sh.xrun_at[k % C.XRUN_LOG]) - c0) * block_ms / 1000, 3) for k in range(x0, x1)]
         return {
             "state": self.state, "callbacks": int(t[C.CALLBACKS]), "frames": int(t[C.FRAMES]),
             "xruns": int(t[C.XRUNS]), "input_overflows": int(t[C.IN_OVERFLOW]),
             "output_underflows": int(t[C.OUT_UNDERFLOW]), "callback_errors": int(t[C.ERRORS]),
+            "xrun_at_s": xrun_s,  # stream time of each xrun (the newest XRUN_LOG), from the window's start
             "block_ms": round(block_ms, 3),
             "callback_ms": {"median": round(float(np.median(d)), 3) if d.size else None,
                             "p99": round(float(np.percentile(d, 99)), 3) if d.size else None,
@@ -260,5 +320,6 @@ class AudioEngine:
             "callback_load_p99": round(float(np.percentile(d, 99)) / block_ms, 3) if d.size else None,
             "reported_latency_ms": {"input": round(1000 * f[C.LAT_IN], 3), "output": round(1000 * f[C.LAT_OUT], 3)},
             "pose_frames": int(t[C.POSE_FRAMES]), "pose_reads_torn": int(t[C.POSE_TORN]),
+            "robot_blocks": int(t[C.ROBOT_BLOCKS]), "robot_blocks_skipped": int(t[C.ROBOT_SKIPPED]),
         }
 

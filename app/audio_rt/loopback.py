@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import re
 import shutil
 import subprocess
 import time
@@ -93,6 +94,53 @@ def burst_lags(sent: np.ndarray, received: np.ndarray, first_frame: int, period:
     return np.array(lags, float)
 
 
+class PlatformProbe:
+    """The machine's own scheduling noise over the measurement window, the reference an xrun count is read against:
+    the worst wake-up latency of a C thread at SCHED_FIFO 90 (rt-tests' cyclictest, 1 ms period on every CPU,
+    --laptop: it leaves the CPU idle states alone) and the CPU time the hypervisor stole (/proc/stat). Nothing of
+    ours runs above FIFO 90, so a wake-up latency longer than a period is the platform's (kernel or hypervisor),
+    not the pipeline's."""
+
+    def __init__(self, seconds: float):
+        self.proc, self.why = None, None
+        exe = shutil.which("cyclictest")
+        if exe is None:
+            self.why = "cyclictest not found: install the Debian package rt-tests"
+        else:
+            self.proc = subprocess.Popen([exe, "-m", "-p", "90", "-i", "1000", "-t", "-a", "-q", "--laptop",
+                                          "-D", str(int(np.ceil(seconds)))], stdout=subprocess.PIPE,
+                                         stderr=subprocess.STDOUT, text=True)
+        self.steal0 = self._steal()
+
+    @staticmethod
+    def _steal() -> float | None:
+        try:
+            with open("/proc/stat") as f:
+                cpu = f.readline().split()
+            return int(cpu[8]) * 1000 / os.sysconf("SC_CLK_TCK")
+        except (OSError, IndexError, ValueError):
+            return None
+
+    def result(self) -> dict:
+        steal = self._steal()
+        out = {"steal_ms": round(steal - self.steal0, 1) if steal is not None and self.steal0 is not None else None,
+               "wakeup_ms_max": None}
+        if self.proc is not None:
+            try:
+                text = self.proc.communicate(timeout=15)[0]
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                text = self.proc.communicate()[0]
+            mx = [int(m) for m in re.findall(r"Max:\s*(\d+)", text)]
+            if mx:
+                out["wakeup_ms_max"] = [round(m / 1000, 3) for m in mx]
+            else:
+                self.why = f"cyclictest gave no result: {text.strip().splitlines()[-1:] or self.proc.returncode}"
+        if self.why:
+            out["why"] = self.why
+        return out
+
+
 def loopback_client_name() -> str:
     return f"sonicverse-{os.getpid()}"
 
@@ -149,8 +197,10 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
     try:
         client = info.get("jack_client")
         wired = connect_loopback(client) if client else ("output 1", "input 1 (cable)")
-        eng.wait_callbacks(50)  # the JACK graph change itself may cost one cycle: start counting after it
+        eng.set_poses(head, robots=robo, t=0.0)  # the frame loop runs before the window opens: no first-pose jump
+        settle = eng.wait_settled()  # the JACK graph change itself may cost a cycle: start counting after it
         eng.mark()
+        probe = PlatformProbe(seconds)
         mic_ring, out_ring = eng.sh.mic, eng.sh.ears[0]
         first = min(int(mic_ring.head[0]), int(out_ring.head[0]))
         mic_ring.read_pos = out_ring.read_pos = first
@@ -176,6 +226,7 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
             frames.append(t1 - t0 - t)
             t = t1 - t0
         tele = eng.telemetry()
+        platform = probe.result()
     finally:
         eng.stop()
         if vis is not None:
@@ -195,9 +246,12 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
         "round_trip_ms_max": round(float(np.max(ok)) * 1000 / sample_rate, 3) if ok.size else None,
         "round_trip_bursts": int(ok.size), "round_trip_missed": int(lags.size - ok.size),
         "round_trip_periods": round(float(np.median(ok)) / block, 3) if ok.size else None,
-        "xruns": tele["xruns"], "callbacks": tele["callbacks"], "callback_errors": tele["callback_errors"],
+        "settle_s": round(settle, 3), "xruns": tele["xruns"], "xrun_at_s": tele["xrun_at_s"], "callbacks": tele["callbacks"],
+        "callback_errors": tele["callback_errors"], "robot_blocks": tele["robot_blocks"],
+        "robot_blocks_skipped": tele["robot_blocks_skipped"],
         "callback_p99_ms": tele["callback_ms"]["p99"], "callback_ms": tele["callback_ms"],
-        "reported_latency_ms": tele["reported_latency_ms"],
+        "reported_latency_ms": tele["reported_latency_ms"], "platform": platform,
+        "cpu_latency_request": info.get("cpu_latency_request"),
         "frames": len(fr), "frame_ms_p50": round(float(np.median(fr)), 2) if fr.size else None,
         "frame_ms_p99": round(float(np.percentile(fr, 99)), 2) if fr.size else None,
         "view": [2, view, view] if load == "frames" else None, "subsystems": info["subsystems"],

@@ -15,11 +15,14 @@ import gc
 import os
 import time
 
+import numpy as np
+
 from app.audio_rt import config as C
 
 
-def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None) -> None:
-    """Worker entry point (``shared_buf`` is given in thread mode, ``shm_path`` in process mode)."""
+def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str = "all") -> None:
+    """Worker entry point (``shared_buf`` is given in thread mode, ``shm_path`` in process mode); ``role``: 'all'
+    (the callback renders the user and the robots) or 'user' (the robots render in :func:`run_robots`)."""
     from app.audio_rt.core import AudioCore, Shared, shared_layout
     from app.audio_rt.poses import PoseLayout
     from app.audio_rt.shared import SharedBlock
@@ -47,7 +50,7 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None) -> None:
 
         out_dev, in_dev = check(cfg)
         t0 = time.perf_counter()
-        core = AudioCore(cfg, scene_setup, sh, pose_layout)
+        core = AudioCore(cfg, scene_setup, sh, pose_layout, role=role)
         core.warm_up()
         warm = time.perf_counter() - t0
         channels = (cfg.mic_channel + 1, 2) if in_dev is not None else 2
@@ -63,6 +66,9 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None) -> None:
             gc.collect()
             gc.freeze()
             gc.disable()
+        from app.audio_rt.qos import LatencyRequest
+
+        qos = LatencyRequest(0)  # held until this process ends (or the stream stops, in thread mode)
         stream.start()
         sh.tele[C.STATE] = C.RUNNING
     except SonicverseError as exc:
@@ -77,7 +83,8 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None) -> None:
                          "hostapi": out_dev["hostapi"], "sample_rate": stream.samplerate, "block": cfg.block,
                          "latency_in_s": lat[0], "latency_out_s": lat[1], "warmup_s": round(warm, 3),
                          "subsystems": core.r.subsystems, "doors": core.doors, "mode": cfg.mode,
-                         "pid": os.getpid(), "jack_client": client if "JACK" in out_dev["hostapi"] else None}))
+                         "pid": os.getpid(), "jack_client": client if "JACK" in out_dev["hostapi"] else None,
+                         "cpu_latency_request": "held" if qos.held else f"not held ({qos.why})"}))
     if not in_thread:
         _realtime_supervisor()
         import sys
@@ -94,6 +101,7 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None) -> None:
             if msg[0] == "stop":
                 stream.stop()
                 stream.close()
+                qos.release()
                 sh.tele[C.STATE] = C.STOPPED
                 try:
                     conn.send(("stopped",))
@@ -118,15 +126,95 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None) -> None:
 
 
 
+def run_robots(conn, cfg, scene_setup, shm_path: str) -> None:
+    """The robot listeners' process: renders what the robots hear, block by block, one block behind the stream.
+
+    The stream's callback renders the user's ears only (the deadline that matters) and writes each microphone block
+    to its ring; this process follows that ring (or the callback's frame counter when there is no microphone),
+    reads the same pose frames, and writes the robots' rings. Its own interpreter and GIL: its DSP never delays the
+    callback, and a slow robot block costs robot latency, never an xrun. Runs at a real-time priority below the
+    callback's and the supervisor's where allowed."""
+    from app.audio_rt.core import AudioCore, Shared, shared_layout
+    from app.audio_rt.poses import PoseLayout
+    from app.audio_rt.shared import Ring, SharedBlock
+
+    try:
+        pose_layout = PoseLayout(len(scene_setup.robots), len(scene_setup.sources), len(scene_setup.doors))
+        n_listeners = 1 + len(scene_setup.robots)
+        layout = shared_layout(cfg, n_listeners, pose_layout)
+        sh = Shared(layout, SharedBlock(layout.size, shm_path, create=False).buf, n_listeners)
+        core = AudioCore(cfg, scene_setup, sh, pose_layout, role="robots")
+        core.warm_up()
+    except Exception as exc:  # noqa: BLE001
+        from sonicverse_core.errors import SonicverseError
+
+        conn.send(("error", type(exc).__name__ if isinstance(exc, SonicverseError) else "ConfigError",
+                   f"the robot listeners' audio process could not start: {exc}"))
+        return
+    mic = Ring(sh.mic.data, sh.mic.head) if cfg.mic else None  # this process's own reader of the mic ring
+    if mic is not None:
+        mic.read_pos = 0
+    B = cfg.block
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    conn.send(("ready", {"pid": os.getpid()}))
+    _realtime(3)
+    done = 0  # stream frames rendered: the robots' rings are indexed by stream frame, like the user's and the mic's
+    while True:
+        if conn.poll(0):
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                msg = ("stop",)
+            if msg[0] == "stop":
+                try:
+                    conn.send(("stopped",))
+                except OSError:
+                    pass
+                return
+        frames = int(sh.tele[C.FRAMES])
+        if frames - done < B:
+            time.sleep(0.001)
+            continue
+        if frames - done > sh.mic.capacity // 2:  # fell far behind (the machine stalled): silence, then the present
+            gap = frames - done
+            sh.tele[C.ROBOT_SKIPPED] += gap // B
+            for ring in sh.ears[1:]:
+                ring.write(np.zeros((2, min(gap, ring.capacity)), np.float32))
+                ring.head[0] = frames
+            done = frames
+            if mic is not None:
+                mic.read_pos = done
+            continue
+        try:
+            block = None
+            if mic is not None:
+                block = mic.read(B)[0]  # written before the counter moved: always a whole block
+            core.render_robots(block)
+        except Exception as exc:  # noqa: BLE001 - reported like a callback error; the robots hear silence
+            for ring in sh.ears[1:]:
+                ring.write(np.zeros((2, B), np.float32))
+            sh.tele[C.ERRORS] += 1
+            sh.set_error(f"robot listeners: {type(exc).__name__}: {exc}")
+        done += B
+        sh.tele[C.ROBOT_BLOCKS] += 1
+
+
+def _realtime(prio: int) -> None:
+    """Run this thread at SCHED_FIFO ``prio`` where allowed (otherwise as it is)."""
+    try:
+        prio = max(1, min(prio, os.sched_get_priority_max(os.SCHED_FIFO)))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except (OSError, AttributeError):
+        pass
+
+
 def _realtime_supervisor() -> None:
     """Run this (supervising) thread at a real-time priority below the audio callback's, where allowed: it holds
     the GIL for microseconds every 50 ms, and a time-shared thread preempted while holding it would stall the
     callback (priority inversion) when the machine is loaded."""
-    try:
-        prio = max(1, min(4, os.sched_get_priority_max(os.SCHED_FIFO)))
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-    except (OSError, AttributeError):
-        pass
+    _realtime(4)
 
 
 def main() -> None:
@@ -135,5 +223,8 @@ def main() -> None:
     from multiprocessing.connection import Connection
 
     conn = Connection(int(sys.argv[1]))
-    cfg, scene_setup, path = conn.recv()
-    run(conn, cfg, scene_setup, path)
+    cfg, scene_setup, path, role = conn.recv()
+    if role == "robots":
+        run_robots(conn, cfg, scene_setup, path)
+    else:
+        run(conn, cfg, scene_setup, path, role=role)
