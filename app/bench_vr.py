@@ -3,8 +3,10 @@
 Per eye size: the loop as shipped (lighting baked into face colours, FLAT shader, single-sampled, no depth
 read-back), the same with 4x MSAA (the error of leaving it out: mean absolute pixel difference, 0-255 levels), and
 stock pyrender (lit PBR shader, 4x MSAA, colour + depth read-back) as the reference the speed-up is measured
-against. Then the audio-only loop (tracking + binaural audio rendered by the frame clock), and the live audio pipeline (app/audio_rt on a private JACK dummy server) while
-the loop renders 512x512 stereo flat out: xruns and callback timing.
+against. Then the audio-only loop (tracking + binaural audio rendered by the frame clock); room culling against the
+whole scene (:func:`room_culling`, also on the home subdivided to scanned-house triangle counts); and the live audio
+pipeline (app/audio_rt on a private JACK dummy server) while the loop renders 512x512 stereo flat out: xruns and
+callback timing.
 """
 from __future__ import annotations
 
@@ -43,7 +45,8 @@ def _stock(scene, size, frames) -> dict:
         return {k: r[k] for k in ("fps", "frame_ms_p50", "frame_ms_p99")}
 
 
-def bench_vr(sizes, frames: int = 60, scene: str = "builtin:apartment", audio_seconds: float = 20.0) -> dict:
+def bench_vr(sizes, frames: int = 60, scene: str = "builtin:apartment", audio_seconds: float = 20.0,
+             culling_scene: str = "builtin:apartment?seed=1", culling_levels=(0, 3)) -> dict:
     out = {"scene": scene, "frames": frames, "target_hz": 90.0, "sizes": {}}
     for w, h in sizes:
         fast, img_fast = _loop(scene, (w, h), frames)
@@ -59,9 +62,90 @@ def bench_vr(sizes, frames: int = 60, scene: str = "builtin:apartment", audio_se
     ao, _ = _loop(scene, (512, 512), frames * 4, views=False, audio="offline")
     out["audio_only_fps"] = ao["fps"]  # no views; binaural audio rendered by the frame clock
     out["device"] = _gl_renderer()
+    out["room_culling"] = [room_culling(culling_scene, densify_levels=lv) for lv in culling_levels]
     if audio_seconds > 0:
         out["live_audio"] = _live_audio(scene, audio_seconds)
     return out
+
+
+def densify(scene, levels: int) -> None:
+    """Subdivide every mesh of a scene ``levels`` times (x4 triangles each): the procedural home standing in for a
+    scanned house of as many triangles (same rooms, same pixels)."""
+    for _ in range(levels):
+        for p in scene.static:
+            p.mesh = p.mesh.subdivide()
+        for o in scene.objects:
+            o.mesh = o.mesh.subdivide()
+    scene._static_mesh, scene._dynamic_cache, scene._world_cache = None, None, {}
+
+
+def room_culling(scene: str, size=(512, 512), poses: int = 40, reps: int = 3, seed: int = 0,
+                 densify_levels: int = 0) -> dict:
+    """Only the rooms a viewer may see loaded and drawn, against the whole scene, on the same poses (nav-grid points,
+    random headings; every other door closed halfway through), alternating so that machine noise hits both:
+    stereo ms per frame, triangles in the GL context, and the pixels that differ (a view missing a room would
+    show the background where the whole scene shows a surface)."""
+    from app.scene.eyes import IPD, eye_offsets
+    from app.scene.visual import VisualScene, bake_lighting
+    from sonicverse_core.geometry.navgrid import NavGrid
+    from sonicverse_core.scene.spec import load_scene
+    from sonicverse_core.sensors.camera import RenderScene, camera_matrix
+
+    sc = load_scene(scene)
+    rng = np.random.default_rng(seed)
+    pts = NavGrid(sc).sample(rng, poses)
+    densify(sc, densify_levels)
+    heads = [(p[0], p[1], sc.floor_z + 1.6, float(rng.uniform(0, 360))) for p in pts]
+    cull = VisualScene(sc, *size, cull_rooms=True, avatar=False)
+    # the reference: the scene as one merged mesh (no culling), drawn by the same GL context (pyrender's EGL
+    # platform cannot close two contexts in one process)
+    whole = RenderScene(sc, face_shading=bake_lighting)
+    cam = whole.scene.add(cull.camera, pose=np.eye(4))
+
+    class full:  # noqa: N801 - the reference's render_stereo
+        rs = whole
+
+        @staticmethod
+        def render_stereo(h):
+            whole.sync()
+            out = []
+            for eye in eye_offsets(IPD):
+                whole.scene.set_pose(cam, camera_matrix(*h) @ eye)
+                out.append(cull.renderer.render(whole.scene, flags=cull._flags)[0])
+            return np.stack(out)
+
+    bg = np.round(np.array(cull.rs.scene.bg_color[:3]) * 255)
+    diff_frac, missing, tris, worst = [], 0, [], 0
+    times = {"cull": [], "full": []}
+    try:
+        for k, h in enumerate(heads):
+            if k == poses // 2:
+                for d in sc.doors[::2]:
+                    sc.set_door(d.name, 0.0)
+            a, b = cull.render_stereo(h).astype(np.int16), full.render_stereo(h).astype(np.int16)
+            tris.append((cull.rs.drawn_triangles, cull.rs.loaded_triangles))
+            d = np.abs(a - b).max(-1)
+            diff_frac.append(float((d > 0).mean()))
+            worst = max(worst, int(d.max()))
+            missing += int(((np.abs(a - bg).max(-1) <= 1) & (np.abs(b - bg).max(-1) > 1)).sum())
+        for _ in range(reps):
+            for name, v in (("cull", cull), ("full", full)):
+                t0 = time.perf_counter()
+                for h in heads:
+                    v.render_stereo(h)
+                times[name].append((time.perf_counter() - t0) / len(heads) * 1000)
+        total = full.rs.loaded_triangles
+    finally:
+        cull.close()
+    ms_c, ms_f = float(np.median(times["cull"])), float(np.median(times["full"]))
+    return {"scene": scene, "densified": densify_levels, "rooms": len(sc.rooms), "size": f"{size[0]}x{size[1]}",
+            "poses": poses,
+            "stereo_ms_culled": round(ms_c, 2), "stereo_ms_whole": round(ms_f, 2), "speedup": round(ms_f / ms_c, 3),
+            "triangles_drawn_mean": round(float(np.mean([t[0] for t in tris])), 1),
+            "triangles_loaded_mean": round(float(np.mean([t[1] for t in tris])), 1), "triangles_whole": int(total),
+            "pixels_differing_mean": round(float(np.mean(diff_frac)), 6),
+            "pixels_differing_max": round(float(np.max(diff_frac)), 6), "max_level_difference": worst,
+            "background_where_whole_has_a_surface": missing}
 
 
 def _gl_renderer() -> str:
@@ -86,17 +170,24 @@ def _live_audio(scene: str, seconds: float) -> dict:
     old = os.environ.get("JACK_DEFAULT_SERVER")
     os.environ["JACK_DEFAULT_SERVER"] = name
     try:
+        from app.audio_rt.loopback import PlatformProbe
+
         with JackServer(name), _session(scene, (512, 512), audio="live", device="system") as s:
+            s.frame()  # the loop is running (first poses handed over) and the JACK graph has settled: then count
+            s.audio.engine.wait_settled()
             s.audio.engine.mark()
+            probe = PlatformProbe(seconds)
             s._last_in = None
             t0 = time.perf_counter()
             while time.perf_counter() - t0 < seconds:
                 s.frame()
             tel = s.audio.telemetry()
+            platform = probe.result()
             r = s.summary()
-        return {"seconds": seconds, "loop_fps": r["fps"], "xruns": tel["xruns"], "callbacks": tel["callbacks"],
-                "callback_ms": tel["callback_ms"], "callback_errors": tel["callback_errors"],
-                "pose_frames": tel["pose_frames"]}
+        return {"seconds": seconds, "loop_fps": r["fps"], "xruns": tel["xruns"], "xrun_at_s": tel["xrun_at_s"],
+                "callbacks": tel["callbacks"], "callback_ms": tel["callback_ms"],
+                "callback_errors": tel["callback_errors"], "pose_frames": tel["pose_frames"],
+                "robot_blocks": tel["robot_blocks"], "platform": platform}
     finally:
         if old is None:
             os.environ.pop("JACK_DEFAULT_SERVER", None)

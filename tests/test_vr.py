@@ -417,3 +417,52 @@ def test_frame_input_is_what_every_backend_returns():
     f = be.wait_frame()
     assert isinstance(f, FrameInput) and f.dt == 1 / 72 and f.t == 0.0
     assert be.eye_to_head.shape == (2, 4, 4) and be.projections.shape == (2, 4, 4)
+
+
+# --- only what is visible loaded --------------------------------------------------------------------------------
+HOUSE = "builtin:apartment?seed=1"  # eight rooms off a corridor
+
+
+def test_room_visibility_sets_and_face_groups():
+    from sonicverse_core.scene.spec import load_scene
+    from sonicverse_core.scene.visibility import RoomVisibility, room_faces
+
+    sc = load_scene(HOUSE)
+    v = RoomVisibility(sc)
+    for r in v.names:
+        assert r in v.sets[r] and all(r in v.sets[o] for o in v.sets[r])  # itself; symmetric
+    for d in sc.doors:  # a door's rooms see each other, open or closed
+        assert d.rooms[1] in v.sets[d.rooms[0]]
+    # walls hide: two bedrooms at opposite ends of the corridor cannot see each other, the corridor sees all
+    assert "bathroom" not in v.sets["bedroom 4"] and v.sets["corridor"] == frozenset(v.names)
+    assert v.visible_from((-50.0, -50.0)) is None  # outside every room: everything
+    groups = room_faces(sc)
+    faces = np.concatenate(list(groups.values()))
+    assert len(faces) == len(sc.static_mesh()) == len(np.unique(faces))  # every face drawn exactly once
+
+
+def test_culled_views_match_the_whole_scene_and_unload_hidden_rooms():
+    """Per-room loading against the whole scene on the same poses (the bench's comparison, small): no view misses
+    a surface the whole scene shows, and rooms out of sight leave the GL context."""
+    from app.bench_vr import room_culling
+    from app.scene.visual import VisualScene
+    from sonicverse_core.scene.spec import load_scene
+
+    r = room_culling(HOUSE, size=(128, 128), poses=12, reps=1)
+    assert r["background_where_whole_has_a_surface"] == 0 and r["pixels_differing_max"] < 1e-3, r
+    assert r["triangles_drawn_mean"] < r["triangles_whole"]
+    sc = load_scene(HOUSE)
+    v = VisualScene(sc, 64, 64, cull_rooms=True, avatar=False)
+    try:
+        whole = v.rs.loaded_triangles + sum(v.rs.group_triangles[g] for g in v.rs.group_nodes
+                                            if not v.rs.scene.has_node(v.rs.group_nodes[g]))
+        corridor, bed4 = sc.room_at((5.0, 5.8)), next(r for r in sc.rooms if r.name == "bedroom 4")
+        assert corridor.name == "corridor"
+        v.render_stereo((5.0, 5.8, 1.6, 0.0))
+        assert v.rs.loaded_triangles == whole  # the corridor sees every room
+        c = bed4.footprint.mean(0)
+        for k in range(v.rs.UNLOAD_AFTER // 2 + 2):
+            v.render_stereo((c[0], c[1], 1.6, 10.0 * k))
+        assert v.rs.drawn_triangles <= v.rs.loaded_triangles < whole  # two shows per stereo frame: hidden rooms unloaded
+    finally:
+        v.close()

@@ -154,29 +154,19 @@ class AudioEngine:
         return self.start()
 
     def _kill(self) -> None:
-        if self._proc is not None:
-            try:
-                self._proc.wait(timeout=3.0)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait(timeout=3.0)
-            self._proc = None
+        for proc in (self._proc, self._rproc):  # a worker that does not exit within 3 s is killed
+            if proc is not None:
+                try:
+                    proc.wait(timeout=3.0)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait(timeout=3.0)
         if self._thread is not None:
             self._thread.join(timeout=3.0)
-            self._thread = None
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
-        if self._rproc is not None:
-            try:
-                self._rproc.wait(timeout=3.0)
-            except subprocess.TimeoutExpired:
-                self._rproc.kill()
-                self._rproc.wait(timeout=3.0)
-            self._rproc = None
-        if self._rconn is not None:
-            self._rconn.close()
-            self._rconn = None
+        for conn in (self._conn, self._rconn):
+            if conn is not None:
+                conn.close()
+        self._proc = self._rproc = self._thread = self._conn = self._rconn = None
 
     def _wait(self, timeout: float, conn=None, proc=None):
         """The next message of the stream's worker (or of ``conn``/``proc``), or None after ``timeout`` s or when

@@ -93,21 +93,13 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str
     last_count, last_change = -1, time.monotonic()
     stall = max(0.5, 50 * cfg.block / cfg.sample_rate)
     while True:
-        if conn.poll(0.05):
-            try:
-                msg = conn.recv()
-            except (EOFError, OSError):  # the application went away: stop quietly
-                msg = ("stop",)
-            if msg[0] == "stop":
-                stream.stop()
-                stream.close()
-                qos.release()
-                sh.tele[C.STATE] = C.STOPPED
-                try:
-                    conn.send(("stopped",))
-                except OSError:
-                    pass
-                return
+        if _stop_asked(conn, 0.05):
+            stream.stop()
+            stream.close()
+            qos.release()
+            sh.tele[C.STATE] = C.STOPPED
+            _send(conn, ("stopped",))
+            return
         count = int(sh.tele[C.CALLBACKS])
         now = time.monotonic()
         if count != last_count:
@@ -162,17 +154,9 @@ def run_robots(conn, cfg, scene_setup, shm_path: str) -> None:
     _realtime(3)
     done = 0  # stream frames rendered: the robots' rings are indexed by stream frame, like the user's and the mic's
     while True:
-        if conn.poll(0):
-            try:
-                msg = conn.recv()
-            except (EOFError, OSError):
-                msg = ("stop",)
-            if msg[0] == "stop":
-                try:
-                    conn.send(("stopped",))
-                except OSError:
-                    pass
-                return
+        if _stop_asked(conn, 0):
+            _send(conn, ("stopped",))
+            return
         frames = int(sh.tele[C.FRAMES])
         if frames - done < B:
             time.sleep(0.001)
@@ -199,6 +183,21 @@ def run_robots(conn, cfg, scene_setup, shm_path: str) -> None:
             sh.set_error(f"robot listeners: {type(exc).__name__}: {exc}")
         done += B
         sh.tele[C.ROBOT_BLOCKS] += 1
+
+
+def _stop_asked(conn, timeout: float) -> bool:
+    """True when the application asks to stop within ``timeout`` s, or went away (then stop quietly)."""
+    try:
+        return conn.poll(timeout) and conn.recv()[0] == "stop"
+    except (EOFError, OSError):
+        return True
+
+
+def _send(conn, msg) -> None:
+    try:
+        conn.send(msg)
+    except OSError:  # the application went away
+        pass
 
 
 def _realtime(prio: int) -> None:

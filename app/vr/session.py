@@ -42,6 +42,7 @@ class SessionConfig:
     robots: int = 1
     robot_camera: bool = False
     msaa: bool = False
+    cull_rooms: str = "auto"  # load only the rooms the eye may see: 'on', 'off', 'auto' (scenes of 250k+ triangles)
     seed: int = 0
     voice: str | None = "robot, come here please"
     write_frames: int = 0  # save every n-th stereo frame as a PNG (0: none)
@@ -53,6 +54,8 @@ class SessionConfig:
             raise ConfigError(f"a VR session has 0 or 1 robot, got {self.robots}")
         if self.write_frames < 0:
             raise ConfigError("write_frames must be >= 0")
+        if self.cull_rooms not in ("auto", "on", "off"):
+            raise ConfigError(f"cull_rooms must be 'auto', 'on' or 'off', got '{self.cull_rooms}'")
 
 
 class VRSession:
@@ -91,7 +94,8 @@ class VRSession:
         if cfg.views:
             from app.scene.visual import VisualScene
 
-            self.views = VisualScene(self.scene, backend.width, backend.height, msaa=cfg.msaa, robots=cfg.robots)
+            self.views = VisualScene(self.scene, backend.width, backend.height, msaa=cfg.msaa, robots=cfg.robots,
+                                     cull_rooms={"on": True, "off": False}.get(cfg.cull_rooms, "auto"))
         self.audio = self._make_audio()
         self.task.reset(self)
         self.frame_index = 0

@@ -43,13 +43,30 @@ class RenderScene:
     and the merged mesh is rebuilt without it. Static parts are coloured by material, objects by semantic category
     (so the categories an agent looks for are visible). ``sync()`` follows the core scene's dynamic state."""
 
-    def __init__(self, scene, bg=(0.55, 0.6, 0.7, 1.0), merge: bool = True, face_shading=None):
+    #: a room's mesh leaves the GL context after this many ``show`` calls without it (hysteresis: a viewer on a
+    #: threshold, or an eye and a robot camera in different rooms, do not upload it again every frame)
+    UNLOAD_AFTER = 90
+
+    def __init__(self, scene, bg=(0.55, 0.6, 0.7, 1.0), merge: bool = True, face_shading=None,
+                 rooms: bool = False):
         import pyrender
 
         from sonicverse_core.scene.materials import MATERIAL_INDEX
 
         self.core = scene
         self.merge = merge
+        # the merged mesh split by room (``show`` loads what a viewer may see); one group (None) otherwise
+        if rooms and scene.rooms:
+            from sonicverse_core.scene.visibility import object_room, room_faces
+
+            self._groups = {g: f for g, f in room_faces(scene).items() if len(f) or g is None}
+            self._obj_group = {o.name: object_room(scene, o) for o in scene.objects}
+        else:
+            self._groups = {None: np.arange(len(scene.static_mesh()))}
+            self._obj_group = {o.name: None for o in scene.objects}
+        self.group_nodes: dict = {}  # group -> its node (in the pyrender scene only while loaded)
+        self._last_use: dict = {}
+        self._shows = 0
         self._shade = face_shading  # (colours (n, 4), normals (n, 3)) -> colours: lighting baked into the faces
         self.scene = pyrender.Scene(bg_color=bg, ambient_light=(0.35, 0.35, 0.35))
         self._mat_pal = palette(len(MATERIAL_INDEX))
@@ -58,7 +75,6 @@ class RenderScene:
         self._obj_colour = {o.name: cpal[cats.index(o.category)] for o in scene.objects}
         self._rest = {o.name: o.pose.copy() for o in scene.objects}
         self.nodes: dict = {}  # object name -> node of its own
-        self._batch_node = None
         self._batched: set[str] = set()
         own = [] if merge else [o.name for o in scene.objects]
         self._build_batch(exclude=set(own))
@@ -68,31 +84,69 @@ class RenderScene:
         self._version = scene.dynamic_version
 
     def _build_batch(self, exclude: set) -> None:
+        """One mesh per group: its static faces and the objects at rest in it (all but ``exclude``)."""
         import pyrender
         import trimesh
 
-        if self._batch_node is not None:
-            self.scene.remove_node(self._batch_node)
+        loaded = {g for g, node in self.group_nodes.items() if self.scene.has_node(node)}
+        for node in self.group_nodes.values():
+            if self.scene.has_node(node):
+                self.scene.remove_node(node)
         sm = self.core.static_mesh()
-        verts, faces, cols, off = [], [], [], 0
-        if len(sm):
-            verts.append(sm.vertices)
-            faces.append(sm.faces)
-            cols.append(self._mat_pal[sm.face_material])
-            off = len(sm.vertices)
-        self._batched = set()
-        for o in self.core.objects:
-            if o.name in exclude:
+        self._batched = {o.name for o in self.core.objects if o.name not in exclude}
+        self.group_nodes = {}
+        self.group_triangles = {}
+        for g, fidx in self._groups.items():
+            verts, faces, cols, off = [], [], [], 0
+            if len(fidx):
+                used, inv = np.unique(sm.faces[fidx], return_inverse=True)
+                verts.append(sm.vertices[used])
+                faces.append(inv.reshape(-1, 3))
+                cols.append(self._mat_pal[sm.face_material[fidx]])
+                off = len(used)
+            for o in self.core.objects:
+                if o.name in self._batched and self._obj_group[o.name] == g:
+                    v = o.mesh.vertices @ o.pose[:3, :3].T + o.pose[:3, 3]
+                    verts.append(v)
+                    faces.append(o.mesh.faces + off)
+                    cols.append(np.tile(self._obj_colour[o.name], (len(o.mesh.faces), 1)))
+                    off += len(v)
+            if not faces:
                 continue
-            v = o.mesh.vertices @ o.pose[:3, :3].T + o.pose[:3, 3]
-            verts.append(v)
-            faces.append(o.mesh.faces + off)
-            cols.append(np.tile(self._obj_colour[o.name], (len(o.mesh.faces), 1)))
-            off += len(v)
-            self._batched.add(o.name)
-        tm = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
-        tm.visual.face_colors = self._colours(np.concatenate(cols), tm.face_normals)
-        self._batch_node = self.scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False))
+            tm = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
+            tm.visual.face_colors = self._colours(np.concatenate(cols), tm.face_normals)
+            node = pyrender.Node(mesh=pyrender.Mesh.from_trimesh(tm, smooth=False))
+            self.group_nodes[g] = node
+            self.group_triangles[g] = len(tm.faces)
+            if g is None or g in loaded:  # a room's mesh is added by the first show() that needs it
+                self.scene.add_node(node)
+
+    def show(self, rooms=None) -> None:
+        """Draw only the groups of these rooms (None: all) until the next call: a room's mesh is loaded into the
+        GL context the first time it is needed and unloaded after ``UNLOAD_AFTER`` calls without it."""
+        want = set(self.group_nodes) if rooms is None else (set(rooms) | {None}) & set(self.group_nodes)
+        for g, node in self.group_nodes.items():
+            if g in want:
+                self._last_use[g] = self._shows
+                if not self.scene.has_node(node):
+                    self.scene.add_node(node)
+                node.mesh.is_visible = True
+            elif self.scene.has_node(node):
+                node.mesh.is_visible = False
+                if self._shows - self._last_use.get(g, -1) > self.UNLOAD_AFTER:
+                    self.scene.remove_node(node)  # pyrender frees its buffers at the next render
+        self._shows += 1
+
+    @property
+    def drawn_triangles(self) -> int:
+        """Triangles of the merged groups the last ``show`` draws."""
+        return sum(self.group_triangles[g] for g, n in self.group_nodes.items()
+                   if self.scene.has_node(n) and n.mesh.is_visible)
+
+    @property
+    def loaded_triangles(self) -> int:
+        """Triangles of the merged groups now in the GL context (objects with nodes of their own not counted)."""
+        return sum(self.group_triangles[g] for g, n in self.group_nodes.items() if self.scene.has_node(n))
 
     def _own_node(self, name: str) -> None:
         import pyrender
