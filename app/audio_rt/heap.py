@@ -2,9 +2,9 @@
 
 The frame loop allocates and frees megabytes per frame (read-back images, llvmpipe's tiles, numpy temporaries).
 glibc returns such memory to the kernel (``munmap`` of large chunks, trimming the top of the heap) and the next
-frame faults it back in, zeroed. On a virtual machine with free-page reporting (virtio-balloon, as on the machines
-here) freed pages also go back to the host, and touching them again stalls the whole virtual CPU in the host.
-Measured with ``cyclictest -p 90`` while ``sonicverse audio loopback-test --load frames`` ran: wake-up latencies of
+frame faults it back in, zeroed. On a virtual machine with free-page reporting (the virtio-balloon device of the
+machines here has it) freed pages probably also go back to the host, and touching them again stalls the whole
+virtual CPU there (the mechanism is inferred; the effect below is measured). Measured with ``cyclictest -p 90`` while ``sonicverse audio loopback-test --load frames`` ran: wake-up latencies of
 a FIFO-90 thread up to 6.5-11 ms with glibc's defaults (longer than a 5.3 ms JACK period: the xruns), 1.5-2.5 ms with
 the heap kept. So the processes of a live session (the frame loop's and the audio worker's) keep their heap: large
 blocks come from the heap instead of ``mmap``, and the heap top is never trimmed. The price is that a process's
