@@ -102,17 +102,13 @@ def room_culling(scene: str, size=(512, 512), poses: int = 40, reps: int = 3, se
     whole = RenderScene(sc, face_shading=bake_lighting)
     cam = whole.scene.add(cull.camera, pose=np.eye(4))
 
-    class full:  # noqa: N801 - the reference's render_stereo
-        rs = whole
-
-        @staticmethod
-        def render_stereo(h):
-            whole.sync()
-            out = []
-            for eye in eye_offsets(IPD):
-                whole.scene.set_pose(cam, camera_matrix(*h) @ eye)
-                out.append(cull.renderer.render(whole.scene, flags=cull._flags)[0])
-            return np.stack(out)
+    def render_whole(h):
+        whole.sync()
+        out = []
+        for eye in eye_offsets(IPD):
+            whole.scene.set_pose(cam, camera_matrix(*h) @ eye)
+            out.append(cull.renderer.render(whole.scene, flags=cull._flags)[0])
+        return np.stack(out)
 
     bg = np.round(np.array(cull.rs.scene.bg_color[:3]) * 255)
     diff_frac, missing, tris, worst = [], 0, [], 0
@@ -122,19 +118,19 @@ def room_culling(scene: str, size=(512, 512), poses: int = 40, reps: int = 3, se
             if k == poses // 2:
                 for d in sc.doors[::2]:
                     sc.set_door(d.name, 0.0)
-            a, b = cull.render_stereo(h).astype(np.int16), full.render_stereo(h).astype(np.int16)
+            a, b = cull.render_stereo(h).astype(np.int16), render_whole(h).astype(np.int16)
             tris.append((cull.rs.drawn_triangles, cull.rs.loaded_triangles))
             d = np.abs(a - b).max(-1)
             diff_frac.append(float((d > 0).mean()))
             worst = max(worst, int(d.max()))
             missing += int(((np.abs(a - bg).max(-1) <= 1) & (np.abs(b - bg).max(-1) > 1)).sum())
         for _ in range(reps):
-            for name, v in (("cull", cull), ("full", full)):
+            for name, render in (("cull", cull.render_stereo), ("full", render_whole)):
                 t0 = time.perf_counter()
                 for h in heads:
-                    v.render_stereo(h)
+                    render(h)
                 times[name].append((time.perf_counter() - t0) / len(heads) * 1000)
-        total = full.rs.loaded_triangles
+        total = whole.loaded_triangles
     finally:
         cull.close()
     ms_c, ms_f = float(np.median(times["cull"])), float(np.median(times["full"]))

@@ -44,6 +44,19 @@ def shared_layout(cfg: AudioConfig, n_listeners: int, pose: PoseLayout) -> Layou
     return L
 
 
+def attach(cfg: AudioConfig, scene_setup: AudioScene, buf=None, shm_path: str | None = None):
+    """(Shared, PoseLayout): a worker's view of the engine's shared block, the layout derived from the same
+    settings as the engine's; ``buf`` (thread mode) or the block mapped from ``shm_path``."""
+    from app.audio_rt.shared import SharedBlock
+
+    pose_layout = PoseLayout(len(scene_setup.robots), len(scene_setup.sources), len(scene_setup.doors))
+    n_listeners = 1 + len(scene_setup.robots)
+    layout = shared_layout(cfg, n_listeners, pose_layout)
+    if buf is None:
+        buf = SharedBlock(layout.size, shm_path, create=False).buf
+    return Shared(layout, buf, n_listeners), pose_layout
+
+
 class Shared:
     """Both sides' view of the block: rings, the pose seqlock, telemetry and the error slot."""
 

@@ -4,14 +4,13 @@ The frame loop allocates and frees megabytes per frame (read-back images, llvmpi
 glibc returns such memory to the kernel (``munmap`` of large chunks, trimming the top of the heap) and the next
 frame faults it back in, zeroed. On a virtual machine with free-page reporting (the virtio-balloon device of the
 machines here has it) freed pages probably also go back to the host, and touching them again stalls the whole
-virtual CPU there (the mechanism is inferred; the effect below is measured). Measured with ``cyclictest -p 90`` while ``sonicverse audio loopback-test --load frames`` ran: wake-up latencies of
-a FIFO-90 thread up to 6.5-11 ms with glibc's defaults (longer than a 5.3 ms JACK period: the xruns), 1.5-2.5 ms with
-the heap kept. So the processes of a live session (the frame loop's and the audio worker's) keep their heap: large
-blocks come from the heap instead of ``mmap``, and the heap top is never trimmed. The price is that a process's
-resident size stays at its high-water mark. The earlier the better: measured over three 30 s runs each, settings in
-place from process start (the environment below; ``sonicverse vr`` and ``sonicverse audio`` call :func:`keep_heap`
-before anything else) kept the FIFO-90 worst case at 2.1-3.3 ms, while settings applied after the renderer was up
-left 8.7-18 ms.
+virtual CPU there (the mechanism is inferred; the effect is measured). Measured with ``cyclictest -p 90`` beside
+``sonicverse audio loopback-test --load frames``, three 30 s runs each: the worst wake-up of a FIFO-90 thread was
+8.7-18 ms with glibc's defaults (longer than a 5.3 ms JACK period: the xruns), 2.1-3.3 ms with the heap kept from
+process start, and 8.4-9.2 ms when the settings came only after the renderer was up. So the processes of a live
+session keep their heap from the start (the environment below for the workers; ``sonicverse vr``, ``audio`` and
+``bench vr`` call :func:`keep_heap` before anything else): large blocks come from the heap instead of ``mmap``, and
+the heap top is never trimmed. The price is that a process's resident size stays at its high-water mark.
 """
 from __future__ import annotations
 

@@ -23,18 +23,12 @@ from app.audio_rt import config as C
 def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str = "all") -> None:
     """Worker entry point (``shared_buf`` is given in thread mode, ``shm_path`` in process mode); ``role``: 'all'
     (the callback renders the user and the robots) or 'user' (the robots render in :func:`run_robots`)."""
-    from app.audio_rt.core import AudioCore, Shared, shared_layout
-    from app.audio_rt.poses import PoseLayout
-    from app.audio_rt.shared import SharedBlock
+    from app.audio_rt.core import AudioCore, attach
     from sonicverse_core.errors import DeviceError, SonicverseError
 
     in_thread = shared_buf is not None
     try:
-        pose_layout = PoseLayout(len(scene_setup.robots), len(scene_setup.sources), len(scene_setup.doors))
-        n_listeners = 1 + len(scene_setup.robots)
-        layout = shared_layout(cfg, n_listeners, pose_layout)
-        buf = shared_buf if in_thread else SharedBlock(layout.size, shm_path, create=False).buf
-        sh = Shared(layout, buf, n_listeners)
+        sh, pose_layout = attach(cfg, scene_setup, shared_buf, shm_path)
         sh.tele[C.PID] = os.getpid()
     except Exception as exc:  # noqa: BLE001
         conn.send(("error", "ConfigError", f"audio worker could not start: {exc}"))
@@ -126,15 +120,11 @@ def run_robots(conn, cfg, scene_setup, shm_path: str) -> None:
     reads the same pose frames, and writes the robots' rings. Its own interpreter and GIL: its DSP never delays the
     callback, and a slow robot block costs robot latency, never an xrun. Runs at a real-time priority below the
     callback's and the supervisor's where allowed."""
-    from app.audio_rt.core import AudioCore, Shared, shared_layout
-    from app.audio_rt.poses import PoseLayout
-    from app.audio_rt.shared import Ring, SharedBlock
+    from app.audio_rt.core import AudioCore, attach
+    from app.audio_rt.shared import Ring
 
     try:
-        pose_layout = PoseLayout(len(scene_setup.robots), len(scene_setup.sources), len(scene_setup.doors))
-        n_listeners = 1 + len(scene_setup.robots)
-        layout = shared_layout(cfg, n_listeners, pose_layout)
-        sh = Shared(layout, SharedBlock(layout.size, shm_path, create=False).buf, n_listeners)
+        sh, pose_layout = attach(cfg, scene_setup, shm_path=shm_path)
         core = AudioCore(cfg, scene_setup, sh, pose_layout, role="robots")
         core.warm_up()
     except Exception as exc:  # noqa: BLE001

@@ -71,9 +71,8 @@ class RoomVisibility:
 
         self.scene = scene
         self.names = [r.name for r in scene.rooms]
-        self.caster = SceneRayCaster(scene)
         rng = np.random.default_rng(seed)
-        self._points = []
+        points = []
         for r in scene.rooms:
             lo, hi = r.footprint.min(0), r.footprint.max(0)
             gx, gy = np.meshgrid(np.arange(lo[0] + spacing / 2, hi[0], spacing),
@@ -82,45 +81,39 @@ class RoomVisibility:
             xy = xy[points_in_polygon(xy, r.footprint) & (boundary_distance(xy, r.footprint) > 0.15)]  # not in a wall
             if len(xy) == 0:
                 xy = r.footprint.mean(0, keepdims=True)
-            self._points.append(np.concatenate([np.c_[xy, np.full(len(xy), r.z_floor + h)] for h in heights]))
+            points.append(np.concatenate([np.c_[xy, np.full(len(xy), r.z_floor + h)] for h in heights]))
+        doorways = [self._doorways(r) for r in scene.rooms]
         # sampled sight lines: random point pairs of two rooms, and lines through a doorway of each (any sight line
         # between rooms whose only openings are doors passes through one of each: chains of doors are not missed)
-        a, b, pid = [], [], []
-        self._pair_ij, count = [], 0
+        a, b, pair, pair_ij = [], [], [], []
         for i in range(len(self.names)):
             for j in range(i + 1, len(self.names)):
-                pi, pj = self._points[i], self._points[j]
-                ka, kb = rng.integers(0, len(pi), pairs), rng.integers(0, len(pj), pairs)
-                a.append(pi[ka])
-                b.append(pj[kb])
-                for da in self._doorways(scene.rooms[i]):
-                    for db in self._doorways(scene.rooms[j]):
-                        sa, sb = self._through(da, db, scene.rooms[i], scene.rooms[j], rng, portal_lines)
-                        a.append(sa)
-                        b.append(sb)
-                total = sum(len(x) for x in a)
-                pid.append(np.full(total - count, len(self._pair_ij)))
-                count = total
-                self._pair_ij.append((i, j))
-        self._a = np.concatenate(a) if a else np.zeros((0, 3))
-        self._b = np.concatenate(b) if b else np.zeros((0, 3))
-        self._pid = np.concatenate(pid) if pid else np.zeros(0, np.int64)
-        # only walls hide a room: furniture never hides a whole room, and a closed door leaves gaps round its leaf
-        # (measured: a closed leaf still shows slivers of the room behind it), so the sets never change
-        clear = np.ones(len(self._a), bool)
-        if len(self._a):
-            clear[self.caster.crossings(self._a, self._b, include_dynamic=False).ray] = False
+                ka, kb = rng.integers(0, len(points[i]), pairs), rng.integers(0, len(points[j]), pairs)
+                lines = [(points[i][ka], points[j][kb])]
+                lines += [self._through(da, db, scene.rooms[i], scene.rooms[j], rng, portal_lines)
+                          for da in doorways[i] for db in doorways[j]]
+                for la, lb in lines:
+                    a.append(la)
+                    b.append(lb)
+                    pair.append(np.full(len(la), len(pair_ij)))
+                pair_ij.append((i, j))
         n = len(self.names)
         see = np.eye(n, dtype=bool)
+        if a:
+            # only walls hide a room: furniture never hides a whole room, and a closed door leaves gaps round its
+            # leaf (measured: a closed leaf still shows slivers of the room behind it), so the sets never change
+            a, b, pair = np.concatenate(a), np.concatenate(b), np.concatenate(pair)
+            clear = np.ones(len(a), bool)
+            clear[SceneRayCaster(scene).crossings(a, b, include_dynamic=False).ray] = False
+            for p in np.unique(pair[clear]):
+                i, j = pair_ij[p]
+                see[i, j] = see[j, i] = True
         idx = {name: k for k, name in enumerate(self.names)}
         for d in scene.doors:  # rooms that share a door see each other, whatever the samples say
             if len(d.rooms) == 2 and all(r in idx for r in d.rooms):
                 see[idx[d.rooms[0]], idx[d.rooms[1]]] = see[idx[d.rooms[1]], idx[d.rooms[0]]] = True
-        for p in np.unique(self._pid[clear]):
-            i, j = self._pair_ij[p]
-            see[i, j] = see[j, i] = True
         self.sets = {self.names[i]: frozenset(self.names[j] for j in np.flatnonzero(see[i])) for i in range(n)}
-        self.sight_lines = len(self._a)
+        self.sight_lines = len(a)
 
     def _doorways(self, room) -> list:
         """(start (2,), end (2,), z0, z1) of the openings of the doors of ``room``."""
@@ -129,8 +122,8 @@ class RoomVisibility:
             if room.name in d.rooms:
                 u = np.array([np.cos(np.radians(d.closed_yaw)), np.sin(np.radians(d.closed_yaw))])
                 h = np.asarray(d.hinge, float)
-                lo, hi = d.world_bounds(d.pose)
-                out.append((h, h + d.width * u, self.scene.floor_z + 0.1, max(hi[2], self.scene.floor_z + 1.9)))
+                top = d.world_bounds(d.pose)[1][2]
+                out.append((h, h + d.width * u, self.scene.floor_z + 0.1, max(top, self.scene.floor_z + 1.9)))
         return out
 
     @staticmethod
