@@ -1,2 +1,2 @@
-"""The Sonicverse application: CLI, VR frame loop (app/vr), real-time audio (app/audio_rt), visual scene
-(app/scene), human-study tasks (app/tasks)."""
+"""The Sonicverse application: the command line (app/cli), benchmarks (app/bench), the VR frame loop (app/vr),
+real-time audio (app/audio_rt), the visual scene (app/scene) and task modules with their evaluation (app/tasks)."""

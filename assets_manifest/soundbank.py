@@ -175,3 +175,22 @@ def pcm_sha256(x: np.ndarray) -> str:
     from assets_manifest import sha256_bytes
 
     return sha256_bytes(np.round(np.asarray(x, np.float64) * 32767).astype("<i2").tobytes())
+
+
+def load_sound(name: str) -> tuple[np.ndarray, int]:
+    """A sound bank name ('sofa', 'sofa/2') or a WAV/FLAC file -> (mono float32 signal, its sample rate)."""
+    from pathlib import Path
+
+    if "/" in name and not Path(name).suffix or name.split("/")[0] in CATEGORIES and not Path(name).exists():
+        return by_name(name), SAMPLE_RATE
+    p = Path(name)
+    if not p.is_file():
+        raise AssetError(f"sound not found: '{name}' is neither a file nor a sound bank name "
+                         f"({', '.join(CATEGORIES)})")
+    import soundfile as sf
+
+    try:
+        x, sr = sf.read(str(p), dtype="float32", always_2d=True)
+    except Exception as exc:
+        raise AssetError(f"cannot read sound file {p}: {exc}") from None
+    return x.mean(axis=1), sr

@@ -177,7 +177,7 @@ def _engine(**kw):
 @pytest.fixture(scope="module")
 def running(jack):
     """One engine for the module's stream tests: output wired to input."""
-    from app.audio_rt.loopback import connect_loopback
+    from app.audio_rt.jack import connect_loopback
 
     eng = _engine()
     info = eng.start()
@@ -247,7 +247,7 @@ def test_callback_exception_plays_silence_is_reported_and_the_stream_goes_on(run
     assert events and all("injected fault" in e for e in events), events
     assert sum(int(e.split("(")[1].split(" ")[0]) for e in events) == 3  # blocks that played silence
     n = eng.telemetry()["callbacks"]
-    assert eng.wait_callbacks(10) == 10 and eng.state == "running" and eng.telemetry()["callbacks"] >= n + 10
+    assert eng.wait_callbacks(10) >= 10 and eng.state == "running" and eng.telemetry()["callbacks"] >= n + 10
 
 
 def test_devices_that_do_not_exist_or_cannot_do_it_give_one_clear_error(jack):

@@ -150,7 +150,7 @@ def test_metrics():
 
 
 def test_oracle_proves_the_metrics_and_random_does_not():
-    from app.evaluate import run_eval
+    from app.tasks.evaluate import run_eval
 
     o = run_eval("AudioGoal", "oracle", 4, split="test", seed=1, env_kwargs={"scenes": HOME, "sensors": ("pose",)})
     assert o["sr"]["mean"] == 1.0 and o["spl"]["mean"] >= 0.95
@@ -258,7 +258,7 @@ def test_eval_cli_prints_metrics_and_writes_files(tmp_path, cli):
 def test_eval_video_writes_frames_and_audio(tmp_path):
     import soundfile as sf
 
-    from app.evaluate import run_eval
+    from app.tasks.evaluate import run_eval
 
     run_eval("AudioGoal", "oracle", 1, seed=2, video=tmp_path, env_kwargs={"scenes": HOME, "width": 32,
                                                                          "height": 32})

@@ -444,7 +444,7 @@ def test_room_visibility_sets_and_face_groups():
 def test_culled_views_match_the_whole_scene_and_unload_hidden_rooms():
     """Per-room loading against the whole scene on the same poses (the bench's comparison, small): no view misses
     a surface the whole scene shows, and rooms out of sight leave the GL context."""
-    from app.bench_vr import room_culling
+    from app.bench.vr import room_culling
     from app.scene.visual import VisualScene
     from sonicverse_core.scene.spec import load_scene
 

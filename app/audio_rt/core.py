@@ -86,7 +86,7 @@ def build_renderer(scene_setup: AudioScene, cfg: AudioConfig, scene=None, role: 
     already loaded core scene to render (shared with the caller, e.g. the headless VR loop), else
     ``scene_setup.spec`` is loaded. ``role``: which listeners it renders: 'all' (the user first, then the robots),
     'user' (the stream's callback when robots render in their own process) or 'robots'."""
-    from app.cli_audio import load_sound
+    from assets_manifest.soundbank import load_sound
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
 
     probes = None
@@ -108,7 +108,7 @@ def build_renderer(scene_setup: AudioScene, cfg: AudioConfig, scene=None, role: 
     r = AcousticRenderer(scene, rc, probes=probes)
     for s in scene_setup.sources:
         if isinstance(s.sound, str):
-            sig, sr = load_sound(s.sound, cfg.sample_rate)
+            sig, sr = load_sound(s.sound)
         else:
             sig, sr = np.asarray(s.sound, np.float32), s.sample_rate or cfg.sample_rate
         r.add_source(sig, s.position, loop=s.loop, gain=s.gain, sample_rate=sr)

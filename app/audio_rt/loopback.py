@@ -10,7 +10,6 @@ callback frame counter, so the lag of each burst's correlation peak is the round
 """
 from __future__ import annotations
 
-import ctypes
 import os
 import re
 import shutil
@@ -19,60 +18,8 @@ import time
 
 import numpy as np
 
+from app.audio_rt.jack import connect_loopback
 from sonicverse_core.errors import DependencyError, DeviceError
-
-_client_name = None  # PortAudio keeps the pointer: the bytes must outlive the stream
-
-
-def name_jack_client(name: str) -> None:
-    """Name the JACK client of the streams this process opens (PortAudio re-initialised to take it)."""
-    global _client_name
-    import sounddevice as sd
-
-    _client_name = name.encode()[:60]
-    try:
-        lib = ctypes.CDLL(sd._libname)
-        lib.PaJack_SetClientName(ctypes.c_char_p(_client_name))
-    except (OSError, AttributeError):  # a PortAudio without JACK support: nothing to name
-        return
-    sd._terminate()
-    sd._initialize()
-
-
-def _jack(*args: str) -> str:
-    exe = shutil.which(args[0])
-    if exe is None:
-        raise DependencyError(f"'{args[0]}' not found: install the Debian package jackd2 (scripts/install-system.sh)")
-    p = subprocess.run([exe, *args[1:]], capture_output=True, text=True, timeout=10)
-    if p.returncode != 0 and args[0] != "jack_disconnect":
-        raise DeviceError(f"{' '.join(args)} failed: {(p.stderr or p.stdout).strip().splitlines()[-1:]}")
-    return p.stdout
-
-
-def jack_connections() -> dict[str, list[str]]:
-    """port -> ports it is connected to (from jack_lsp -c)."""
-    out, cur = {}, None
-    for line in _jack("jack_lsp", "-c").splitlines():
-        if line.startswith((" ", "\t")):
-            out.setdefault(cur, []).append(line.strip())
-        elif line.strip():
-            cur = line.strip()
-            out.setdefault(cur, [])
-    return out
-
-
-def connect_loopback(client: str) -> tuple[str, str]:
-    """Wire ``client``'s first output to its first input, and nothing else into that input."""
-    conns = jack_connections()
-    outs = sorted(p for p in conns if p.startswith(client + ":out"))
-    ins = sorted(p for p in conns if p.startswith(client + ":in"))
-    if not outs or not ins:
-        raise DeviceError(f"JACK client '{client}' has no ports to loop back (ports: {sorted(conns)[:8]})")
-    for port in ins:
-        for other in conns[port]:
-            _jack("jack_disconnect", other, port)
-    _jack("jack_connect", outs[0], ins[0])
-    return outs[0], ins[0]
 
 
 def burst_lags(sent: np.ndarray, received: np.ndarray, first_frame: int, period: int, burst: int = 4096,

@@ -37,7 +37,7 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str
         import sounddevice as sd
 
         from app.audio_rt.devices import check
-        from app.audio_rt.loopback import name_jack_client
+        from app.audio_rt.jack import name_jack_client
 
         client = f"sonicverse-{os.getpid()}"
         name_jack_client(client)

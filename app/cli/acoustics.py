@@ -18,31 +18,10 @@ def _xyz(text: str, n=(3,)) -> list[float]:
     return v
 
 
-def load_sound(name: str, sample_rate: int) -> tuple[np.ndarray, int]:
-    """A sound bank name ('sofa', 'sofa/2') or a WAV/FLAC file."""
-    from pathlib import Path
-
-    from assets_manifest import soundbank
-    from sonicverse_core.errors import AssetError
-
-    if "/" in name and not Path(name).suffix or name.split("/")[0] in soundbank.CATEGORIES and not Path(name).exists():
-        return soundbank.by_name(name), soundbank.SAMPLE_RATE
-    p = Path(name)
-    if not p.is_file():
-        raise AssetError(f"sound not found: '{name}' is neither a file nor a sound bank name "
-                         f"({', '.join(soundbank.CATEGORIES)})")
-    import soundfile as sf
-
-    try:
-        x, sr = sf.read(str(p), dtype="float32", always_2d=True)
-    except Exception as exc:
-        raise AssetError(f"cannot read sound file {p}: {exc}") from None
-    return x.mean(axis=1), sr
-
-
 def cmd_render(a) -> int:
     import soundfile as sf
 
+    from assets_manifest import soundbank
     from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions, enclosed_fraction
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
     from sonicverse_core.scene.spec import load_scene
@@ -54,7 +33,7 @@ def cmd_render(a) -> int:
         raise ConfigError("--seconds must be within (0, 3600]")
     cfg = RenderConfig(sample_rate=a.sample_rate, block=a.block, output=a.output,
                        occlusion=not a.no_occlusion, late_reverb=not a.no_reverb)
-    sig, sr = load_sound(a.sound, cfg.sample_rate)
+    sig, sr = soundbank.load_sound(a.sound)
     probes = None
     if cfg.late_reverb:
         positions = default_probe_positions(scene)
@@ -93,7 +72,7 @@ def cmd_bake(a) -> int:
 
 
 def add_audio_commands(sub, bench_sub) -> None:
-    from app.audio_rt.cli import add_commands
+    from app.cli.audio import add_commands
 
     add_commands(sub)
     r = sub.add_parser("render", help="render binaural audio of one source to a file",
@@ -146,7 +125,7 @@ def add_audio_commands(sub, bench_sub) -> None:
 
 
 def cmd_bench_audio(a) -> int:
-    from app.bench import bench_audio
+    from app.bench.engine import bench_audio
 
     if not (1 <= a.sources <= 4096) or not (0.1 <= a.seconds <= 3600):
         raise ConfigError("--sources must be 1..4096 and --seconds 0.1..3600")
@@ -155,7 +134,7 @@ def cmd_bench_audio(a) -> int:
 
 
 def cmd_bench_accuracy(a) -> int:
-    from app.bench_accuracy import bench_accuracy
+    from app.bench.accuracy import bench_accuracy
 
     if a.reference_rays < 1000:
         raise ConfigError("--reference-rays must be at least 1000")

@@ -111,7 +111,7 @@ def cmd_vr(a) -> int:
 
 
 def cmd_bench_vr(a) -> int:
-    from app.bench_vr import bench_vr
+    from app.bench.vr import bench_vr
 
     try:
         levels = [int(x) for x in a.culling_levels.split(",") if x.strip()]

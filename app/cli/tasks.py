@@ -6,7 +6,7 @@ import sys
 
 
 def cmd_eval(a) -> int:
-    from app.evaluate import run_eval
+    from app.tasks.evaluate import run_eval
 
     csv_path = a.csv or f"out/eval/{a.task}_{a.agent}_{a.split}_{a.sounds}_s{a.seed}.csv"
     kw = {}
@@ -32,14 +32,14 @@ def cmd_eval(a) -> int:
 
 
 def cmd_bench_env(a) -> int:
-    from app.bench_env import bench_env
+    from app.bench.env import bench_env
 
     print(json.dumps(bench_env(a.task, a.steps, a.workers, a.size, a.seed)))
     return 0
 
 
 def add_task_commands(sub, bench_sub) -> None:
-    from app.evaluate import TASK_NAMES
+    from app.tasks.evaluate import TASK_NAMES
 
     e = sub.add_parser("eval", help="evaluate an agent on a navigation task (SR, SPL, SNA)",
                        description="Run an agent over N episodes; print SR, SPL, SNA and distance to goal with 95% "

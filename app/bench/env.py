@@ -32,7 +32,7 @@ def _run(env, actions, seed: int) -> float:
 
 
 def bench_env(task: str = "AudioGoal", steps: int = 400, workers: int = 2, size: int = 128, seed: int = 0) -> dict:
-    from app.evaluate import make_env
+    from app.tasks.evaluate import make_env
 
     rng = np.random.default_rng(seed)
     sensors = ("depth", "audio", "spectrogram", "bump", "pose")

@@ -67,7 +67,7 @@ def cmd_demo(a) -> int:
     (out / "scene.json").write_text(json.dumps(info, indent=2))
     draw_map(scene, out / "map.png", grid=grid)
     written = ["scene.json", "map.png"]
-    from app.demo import run_demo_extras
+    from app.cli.demo import run_demo_extras
 
     written += run_demo_extras(scene, grid, out, seconds=a.seconds)
     summary = {"scene": scene.spec, "out": str(out), "files": written,
@@ -78,7 +78,7 @@ def cmd_demo(a) -> int:
 
 # --- bench --------------------------------------------------------------------------------------------------
 def cmd_bench_rays(a) -> int:
-    from app.bench import bench_rays
+    from app.bench.engine import bench_rays
 
     _json(bench_rays(a.scene, a.rays))
     return 0
@@ -119,13 +119,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="(always JSON)")
     r.set_defaults(func=cmd_bench_rays)
 
-    from app.cli_audio import add_audio_commands
+    from app.cli.acoustics import add_audio_commands
 
     add_audio_commands(sub, bs)
-    from app.cli_tasks import add_task_commands
+    from app.cli.tasks import add_task_commands
 
     add_task_commands(sub, bs)
-    from app.cli_vr import add_vr_commands
+    from app.cli.vr import add_vr_commands
 
     add_vr_commands(sub, bs)
     return p
