@@ -73,3 +73,7 @@ def require(module: str, purpose: str, install: str | None = None):
 
 class DataError(SonicverseError):
     """A data file written by Sonicverse (an input recording...) that is missing, corrupt or of another version."""
+
+
+class Interrupted(SonicverseError):
+    """The user or the system stopped a command (Ctrl-C, SIGTERM); files being written were finished first."""

@@ -398,7 +398,7 @@ def test_vr_command_errors_exit_2(cli, tmp_path):
     assert "OpenVR did not start" in r.stderr and "--backend desktop" in r.stderr
     assert len(r.stderr.strip().splitlines()[-1]) > 0 and "Traceback" not in r.stderr
     r = cli("vr", "--backend", "headless", "--replay", str(tmp_path / "nope.npz"), check_rc=2)
-    assert "not found" in r.stderr
+    assert "no such file" in r.stderr
     r = cli("vr", "--backend", "headless", "--scene", "nosuch:scene", "--frames", "2", check_rc=2)
     assert "Traceback" not in r.stderr
     r = cli("vr", "--backend", "headless", "--size", "10x10", check_rc=2)

@@ -1,12 +1,15 @@
 """The `sonicverse` command. Every user mistake prints one line on stderr and exits with code 2."""
 from __future__ import annotations
 
-import argparse
 import json
+import logging
+import os
+import signal
 import sys
 from pathlib import Path
 
-from sonicverse_core.errors import SonicverseError
+from app.cli import args as A
+from sonicverse_core.errors import Interrupted, SonicverseError
 
 
 def _json(obj) -> None:
@@ -85,8 +88,10 @@ def cmd_bench_rays(a) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sonicverse", description="Sonicverse: multisensory household simulation "
-                                "with real-time binaural audio.")
+    p = A.Parser(prog="sonicverse", description="Sonicverse: multisensory household simulation with real-time "
+                 "binaural audio.")
+    p.add_argument("--version", action="version", version=f"sonicverse {version()}")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="log what the library does (-vv: debug)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     sc = sub.add_parser("scene", help="inspect scenes", description="Inspect a scene: summary or top-down map.")
@@ -99,14 +104,15 @@ def build_parser() -> argparse.ArgumentParser:
     s = scs.add_parser("map", help="draw a top-down map (PNG)", description="Draw a top-down map: navigable "
                        "floor, walls, doors, windows, labelled objects, rooms coloured.")
     s.add_argument("spec", help="scene spec")
-    s.add_argument("--out", required=True, help="output PNG file")
+    s.add_argument("--out", required=True, type=A.out_file(".png"), help="output PNG file")
     s.set_defaults(func=cmd_scene_map)
 
     d = sub.add_parser("demo", help="the main job on the default scene", description="Build the default "
                        "apartment and write its map, summary, and a short headless run's outputs to a folder.")
     d.add_argument("--scene", default="builtin:apartment?seed=0", help="scene spec (default: %(default)s)")
-    d.add_argument("--out", default="out/demo", help="output folder (default: %(default)s)")
-    d.add_argument("--seconds", type=float, default=4.0, help="length of the rendered audio (default: %(default)s)")
+    d.add_argument("--out", default="out/demo", type=A.out_dir, help="output folder (default: %(default)s)")
+    d.add_argument("--seconds", type=A.number(0, 600, lo_open=True, unit="s"), default=4.0,
+                   help="length of the rendered audio, s (default: %(default)s)")
     d.add_argument("--json", action="store_true", help="print one JSON object")
     d.set_defaults(func=cmd_demo)
 
@@ -115,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     bs = b.add_subparsers(dest="bench_command", metavar="BENCH", required=True)
     r = bs.add_parser("rays", help="ray casting rays/s: Embree vs trimesh's numpy caster")
     r.add_argument("--scene", default="builtin:apartment", help="scene spec (default: %(default)s)")
-    r.add_argument("--rays", type=int, default=200_000, help="rays per batch (default: %(default)s)")
+    r.add_argument("--rays", type=A.count(1000, 50_000_000), default=200_000,
+                   help="rays per batch (default: %(default)s)")
     r.add_argument("--json", action="store_true", help="(always JSON)")
     r.set_defaults(func=cmd_bench_rays)
 
@@ -131,22 +138,60 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as v
+
+    try:
+        return v("sonicverse")
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "0+unknown"
+
+
+def _on_sigterm(signum, frame):
+    raise Interrupted("terminated (SIGTERM)")
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns the exit code: 0, or 2 for any user mistake, interruption or system refusal (one
+    line on stderr, never a traceback)."""
     words = sys.argv[1:3] if argv is None else argv[:2]
     if words[:1] in (["vr"], ["audio"]) or words == ["bench", "vr"]:
         from app.audio_rt.heap import keep_heap
 
         keep_heap()  # live audio beside a frame loop: before any allocation of note (app/audio_rt/heap.py)
     parser = build_parser()
-    args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version (0) and argument errors (2, already printed on one line)
+        return int(exc.code or 0)
+    logging.basicConfig(level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
+                        format="sonicverse: %(name)s: %(message)s", stream=sys.stderr)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if argv is None else None
+    try:
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
+        return code
     except SonicverseError as exc:
         print(f"sonicverse: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print("sonicverse: interrupted", file=sys.stderr)
-        return 130
+        print("sonicverse: error: interrupted", file=sys.stderr)
+        return 2
+    except BrokenPipeError:  # `sonicverse ... | head`: the reader has gone; say nothing more
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except MemoryError:
+        print("sonicverse: error: out of memory: use a smaller scene, a coarser resolution or fewer items",
+              file=sys.stderr)
+        return 2
+    except OSError as exc:  # the system refused a file or device operation (disk full, permissions...)
+        where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
+        print(f"sonicverse: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 2
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -5,17 +5,8 @@ import json
 
 import numpy as np
 
+from app.cli import args as A
 from sonicverse_core.errors import ConfigError
-
-
-def _xyz(text: str, n=(3,)) -> list[float]:
-    try:
-        v = [float(x) for x in text.split(",")]
-    except ValueError:
-        raise ConfigError(f"expected comma-separated numbers, got '{text}'") from None
-    if len(v) not in n or not np.all(np.isfinite(v)):
-        raise ConfigError(f"expected {' or '.join(map(str, n))} finite numbers, got '{text}'")
-    return v
 
 
 def cmd_render(a) -> int:
@@ -27,10 +18,7 @@ def cmd_render(a) -> int:
     from sonicverse_core.scene.spec import load_scene
 
     scene = load_scene(a.spec)
-    src = _xyz(a.source)
-    lis = _xyz(a.listener, (3, 4))
-    if a.seconds <= 0 or a.seconds > 3600:
-        raise ConfigError("--seconds must be within (0, 3600]")
+    src, lis = a.source, a.listener
     cfg = RenderConfig(sample_rate=a.sample_rate, block=a.block, output=a.output,
                        occlusion=not a.no_occlusion, late_reverb=not a.no_reverb)
     sig, sr = soundbank.load_sound(a.sound)
@@ -59,7 +47,7 @@ def cmd_bake(a) -> int:
 
     scene = load_scene(a.spec)
     if a.at:
-        positions = np.array([_xyz(p) for p in a.at])
+        positions = np.array(a.at)
     else:
         positions = default_probe_positions(scene, a.probes, rng=np.random.default_rng(a.seed))
     probes = bake(scene, positions, BakeConfig(rays=a.rays, seed=a.seed), progress=not a.json)
@@ -79,26 +67,32 @@ def add_audio_commands(sub, bench_sub) -> None:
                        description="Render a sound at a source position as heard at a listener (binaural).")
     r.add_argument("spec", help="scene spec")
     r.add_argument("--sound", required=True, help="sound bank name (e.g. sofa, sofa/3) or a WAV/FLAC file")
-    r.add_argument("--source", required=True, help="X,Y,Z of the source (m)")
-    r.add_argument("--listener", required=True, help="X,Y,Z[,YAW] of the listener (m, degrees)")
-    r.add_argument("--seconds", type=float, default=3.0)
-    r.add_argument("--out", required=True, help="output WAV file")
-    r.add_argument("--sample-rate", type=int, default=48000)
-    r.add_argument("--block", type=int, default=256)
-    r.add_argument("--output", default="binaural", choices=["binaural", "stereo", "mono"])
-    r.add_argument("--rays", type=int, default=2000, help="rays per reverb probe")
-    r.add_argument("--no-occlusion", action="store_true")
-    r.add_argument("--no-reverb", action="store_true")
+    r.add_argument("--source", required=True, type=A.argtype(A.xyz), help="X,Y,Z of the source (m)")
+    r.add_argument("--listener", required=True, type=A.argtype(lambda t: A.xyz(t, (3, 4))),
+                   help="X,Y,Z[,YAW] of the listener (m, degrees)")
+    r.add_argument("--seconds", type=A.number(0, 24 * 3600, lo_open=True, unit="s"), default=3.0,
+                   help="length of the output, s (streamed to disk; default: %(default)s)")
+    r.add_argument("--out", required=True, type=A.out_file(".wav", ".flac"), help="output WAV or FLAC file")
+    r.add_argument("--sample-rate", type=A.count(8000, 192000), default=48000,
+                   help="output sample rate, Hz (default: %(default)s)")
+    r.add_argument("--block", type=A.count(16, 8192), default=256, help="frames per block (default: %(default)s)")
+    r.add_argument("--output", default="binaural", choices=["binaural", "stereo", "mono"],
+                   help="binaural (HRTF), stereo (panned) or mono (default: %(default)s)")
+    r.add_argument("--rays", type=A.count(100, 10_000_000), default=2000,
+                   help="rays per reverb probe (default: %(default)s)")
+    r.add_argument("--no-occlusion", action="store_true", help="no transmission loss through walls and doors")
+    r.add_argument("--no-reverb", action="store_true", help="no early reflections and no late reverb")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.set_defaults(func=cmd_render)
     b = sub.add_parser("bake", help="bake reverb probes (ray tracing)",
                        description="Bake reverb probes over the scene's static structure; cached on disk.")
     b.add_argument("spec", help="scene spec")
-    b.add_argument("--probes", type=int, default=None, help="number of probes spread over the floor "
+    b.add_argument("--probes", type=A.count(1, 10_000), default=None, help="number of probes spread over the floor "
                    "(default: one per room)")
-    b.add_argument("--rays", type=int, default=2000)
-    b.add_argument("--at", action="append", help="X,Y,Z of a probe (repeatable)")
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--rays", type=A.count(100, 10_000_000), default=2000,
+                   help="rays per probe (default: %(default)s)")
+    b.add_argument("--at", action="append", type=A.argtype(A.xyz), help="X,Y,Z of a probe (repeatable)")
+    b.add_argument("--seed", type=A.seed, default=0, help="seed of the ray directions (default: %(default)s)")
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.set_defaults(func=cmd_bake)
 
@@ -106,19 +100,21 @@ def add_audio_commands(sub, bench_sub) -> None:
                               description="Per-block cost of the full pipeline (HRTF, occlusion, early reflections, "
                               "late reverb) with a walking, turning listener, as a fraction of real time, and a "
                               "naive per-source scipy convolution measured in the same run.")
-    ba.add_argument("--sources", type=int, default=64)
-    ba.add_argument("--seconds", type=float, default=8.0, help="audio rendered (default: %(default)s)")
-    ba.add_argument("--scene", default="builtin:apartment")
-    ba.add_argument("--sample-rate", type=int, default=48000)
-    ba.add_argument("--block", type=int, default=256)
+    ba.add_argument("--sources", type=A.count(1, 4096), default=64, help="sources (default: %(default)s)")
+    ba.add_argument("--seconds", type=A.number(0.1, 3600, unit="s"), default=8.0,
+                    help="audio rendered, s (default: %(default)s)")
+    ba.add_argument("--scene", default="builtin:apartment", help="scene spec (default: %(default)s)")
+    ba.add_argument("--sample-rate", type=A.count(8000, 192000), default=48000, help="Hz (default: %(default)s)")
+    ba.add_argument("--block", type=A.count(16, 8192), default=256, help="frames per block (default: %(default)s)")
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
                               description="Sweep rays per probe, bounces, probes, HRTF interpolation and taps, early "
                               "reflection order, reverb method and block size; print error vs a reference and run "
                               "time per setting, with the Pareto front.")
-    bc.add_argument("--plot", help="write a PNG of error vs time per knob")
-    bc.add_argument("--reference-rays", type=int, default=1_000_000, help="rays of the reference bake (cached)")
+    bc.add_argument("--plot", type=A.out_file(".png"), help="write a PNG of error vs time per knob")
+    bc.add_argument("--reference-rays", type=A.count(1000, 100_000_000), default=1_000_000,
+                    help="rays of the reference bake (cached; default: %(default)s)")
     bc.add_argument("--quick", action="store_true", help="fewer settings per knob")
     bc.add_argument("--json", action="store_true", help="(always JSON)")
     bc.set_defaults(func=cmd_bench_accuracy)
@@ -127,8 +123,6 @@ def add_audio_commands(sub, bench_sub) -> None:
 def cmd_bench_audio(a) -> int:
     from app.bench.engine import bench_audio
 
-    if not (1 <= a.sources <= 4096) or not (0.1 <= a.seconds <= 3600):
-        raise ConfigError("--sources must be 1..4096 and --seconds 0.1..3600")
     print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block)))
     return 0
 
@@ -136,7 +130,5 @@ def cmd_bench_audio(a) -> int:
 def cmd_bench_accuracy(a) -> int:
     from app.bench.accuracy import bench_accuracy
 
-    if a.reference_rays < 1000:
-        raise ConfigError("--reference-rays must be at least 1000")
     print(json.dumps(bench_accuracy(a.reference_rays, a.quick, a.plot)))
     return 0

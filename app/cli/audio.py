@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 
-from sonicverse_core.errors import ConfigError, SonicverseError
+from app.cli import args as A
+from sonicverse_core.errors import SonicverseError
 
 
 def _device(text):
@@ -81,8 +82,6 @@ def cmd_live(a) -> int:
     from app.audio_rt.engine import AudioEngine
     from app.audio_rt.loopback import random_sources
 
-    if not (0 < a.seconds <= 24 * 3600) or not (0 <= a.sources <= 256):
-        raise ConfigError("--seconds must be within (0, 86400] and --sources 0-256")
     spec = None if a.scene == "none" else a.scene
     srcs, head = random_sources(spec, a.sources, a.seed, gain=0.1)
     cfg = AudioConfig(device=_device(a.device), input_device=_device(a.input_device), sample_rate=a.sample_rate,
@@ -137,42 +136,46 @@ def add_commands(sub) -> None:
                         description="Real-time audio through PortAudio (a sound card, or a JACK server).")
     s = au.add_subparsers(dest="audio_command", metavar="SUBCOMMAND", required=True)
     d = s.add_parser("devices", help="list audio devices")
-    d.add_argument("--json", action="store_true")
+    d.add_argument("--json", action="store_true", help="print one JSON object")
     d.set_defaults(func=cmd_devices)
 
     def stream_args(p):
         p.add_argument("--device", help="output (and input) device: name or index (default: the default)")
-        p.add_argument("--sample-rate", type=int, default=48000)
-        p.add_argument("--block", type=int, default=256, help="frames per callback (default: %(default)s)")
+        p.add_argument("--sample-rate", type=A.count(8000, 192000), default=48000,
+                       help="stream sample rate, Hz (default: %(default)s)")
+        p.add_argument("--block", type=A.count(16, 8192), default=256, help="frames per callback (default: %(default)s)")
         p.add_argument("--json", action="store_true", help="print one JSON object")
 
     lb = s.add_parser("loopback-test", help="round trip, xruns and callback timing with output wired to input",
                       description="Open the duplex stream with a scene, wire its output to its input (JACK: "
                       "automatically; otherwise a cable), and measure round-trip latency by correlation, xruns "
                       "and callback durations while a frame loop hands poses at frame rate.")
-    lb.add_argument("--seconds", type=float, default=10.0)
-    lb.add_argument("--sources", type=int, default=16, help="scene sources besides the microphone")
-    lb.add_argument("--robots", type=int, default=1, help="robot listeners hearing the microphone")
+    lb.add_argument("--seconds", type=A.number(1, 24 * 3600, unit="s"), default=10.0,
+                    help="length of the test, s (default: %(default)s)")
+    lb.add_argument("--sources", type=A.count(0, 1024), default=16, help="scene sources besides the microphone")
+    lb.add_argument("--robots", type=A.count(0, 8), default=1, help="robot listeners hearing the microphone")
     lb.add_argument("--scene", default="builtin:apartment", help="scene spec, or 'none' for free field")
     lb.add_argument("--mode", default="process", choices=["process", "thread"],
                     help="DSP in its own process (default) or in a thread of this one")
     lb.add_argument("--load", default="none", choices=["none", "frames"],
                     help="'frames': the frame loop renders stereo views as fast as it can meanwhile")
-    lb.add_argument("--view", type=int, default=512, help="eye resolution with --load frames")
+    lb.add_argument("--view", type=A.count(16, 4096), default=512, help="eye resolution with --load frames")
     stream_args(lb)
     lb.set_defaults(func=cmd_loopback)
 
     lv = s.add_parser("live", help="microphone + scene to headphones, head pose from the keyboard",
                       description="Stream the microphone into the scene at the avatar's mouth and the scene to "
                       "the headphones; w/s step, a/d turn, q quits.")
-    lv.add_argument("--scene", default="builtin:apartment")
-    lv.add_argument("--sources", type=int, default=4)
-    lv.add_argument("--seconds", type=float, default=3600.0)
+    lv.add_argument("--scene", default="builtin:apartment", help="scene spec, or 'none' (default: %(default)s)")
+    lv.add_argument("--sources", type=A.count(0, 256), default=4, help="sound-bank sources placed at random "
+                    "(default: %(default)s)")
+    lv.add_argument("--seconds", type=A.number(0, 24 * 3600, lo_open=True, unit="s"), default=3600.0,
+                    help="stop after this long, s (default: %(default)s)")
     lv.add_argument("--input-device", help="microphone device (default: --device)")
-    lv.add_argument("--sidetone", type=float, default=0.0, help="hear your own voice in the scene (gain)")
+    lv.add_argument("--sidetone", type=A.number(0, 4), default=0.0, help="hear your own voice in the scene (gain)")
     lv.add_argument("--no-mic", action="store_true", help="output only")
-    lv.add_argument("--record", help="write what reached the headphones to this WAV file")
+    lv.add_argument("--record", type=A.out_file(".wav"), help="write what reached the headphones to this WAV file")
     lv.add_argument("--reopen", action="store_true", help="reopen the stream when the device comes back")
-    lv.add_argument("--seed", type=int, default=0)
+    lv.add_argument("--seed", type=A.seed, default=0, help="seed of the sources' placement (default: 0)")
     stream_args(lv)
     lv.set_defaults(func=cmd_live)

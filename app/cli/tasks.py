@@ -4,6 +4,8 @@ from __future__ import annotations
 import json
 import sys
 
+from app.cli import args as A
+
 
 def cmd_eval(a) -> int:
     from app.tasks.evaluate import run_eval
@@ -44,25 +46,26 @@ def add_task_commands(sub, bench_sub) -> None:
     e = sub.add_parser("eval", help="evaluate an agent on a navigation task (SR, SPL, SNA)",
                        description="Run an agent over N episodes; print SR, SPL, SNA and distance to goal with 95% "
                        "confidence intervals; write a per-episode CSV.")
-    e.add_argument("--task", required=True, choices=TASK_NAMES)
-    e.add_argument("--agent", required=True, choices=("random", "oracle", "gan"))
-    e.add_argument("--episodes", type=int, default=20, help="number of episodes (default: %(default)s)")
+    e.add_argument("--task", required=True, choices=TASK_NAMES, help="the navigation task")
+    e.add_argument("--agent", required=True, choices=("random", "oracle", "gan"), help="the agent to score")
+    e.add_argument("--episodes", type=A.count(1, 100_000), default=20, help="number of episodes (default: %(default)s)")
     e.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")
     e.add_argument("--sounds", default="heard", choices=("heard", "unheard"), help="sound set (default: heard)")
-    e.add_argument("--seed", type=int, default=0, help="episode seed (default: %(default)s)")
-    e.add_argument("--homes", type=int, default=None, help="use the first N homes of the split")
-    e.add_argument("--max-steps", type=int, default=None, help="episode length limit (default: 500)")
-    e.add_argument("--csv", default=None, help="per-episode CSV (default: out/eval/TASK_AGENT_SPLIT_SOUNDS_sSEED.csv)")
-    e.add_argument("--maps", default=None, metavar="DIR", help="write a top-down trajectory map per episode")
-    e.add_argument("--video", default=None, metavar="DIR", help="write frames (PNG) + audio (WAV) per episode")
+    e.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")
+    e.add_argument("--homes", type=A.count(1, 1000), default=None, help="use the first N homes of the split")
+    e.add_argument("--max-steps", type=A.count(1, 100_000), default=None, help="episode length limit (default: 500)")
+    e.add_argument("--csv", default=None, type=A.out_file(".csv"), help="per-episode CSV (default: out/eval/TASK_AGENT_SPLIT_SOUNDS_sSEED.csv)")
+    e.add_argument("--maps", default=None, metavar="DIR", type=A.out_dir, help="write a top-down trajectory map per episode")
+    e.add_argument("--video", default=None, metavar="DIR", type=A.out_dir, help="write frames (PNG) + audio (WAV) per episode")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=cmd_eval)
 
     b = bench_sub.add_parser("env", help="environment steps/s: one env and N workers, with a breakdown")
-    b.add_argument("--task", default="AudioGoal", choices=TASK_NAMES)
-    b.add_argument("--steps", type=int, default=400, help="steps to time (default: %(default)s)")
-    b.add_argument("--workers", type=int, default=2, help="vectorised workers (0: skip; default: %(default)s)")
-    b.add_argument("--size", type=int, default=128, help="camera width = height (default: %(default)s)")
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--task", default="AudioGoal", choices=TASK_NAMES, help="task (default: %(default)s)")
+    b.add_argument("--steps", type=A.count(10, 1_000_000), default=400, help="steps to time (default: %(default)s)")
+    b.add_argument("--workers", type=A.count(0, 64), default=2,
+                   help="vectorised workers (0: skip; default: %(default)s)")
+    b.add_argument("--size", type=A.count(16, 2048), default=128, help="camera width = height (default: %(default)s)")
+    b.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")
     b.add_argument("--json", action="store_true", help="(always JSON)")
     b.set_defaults(func=cmd_bench_env)

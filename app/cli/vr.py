@@ -5,17 +5,8 @@ import json
 import os
 import sys
 
+from app.cli import args as A
 from sonicverse_core.errors import ConfigError
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ConfigError(f"eye size must be WIDTHxHEIGHT, got '{text}'") from None
-    if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise ConfigError(f"eye size must be 16-8192 pixels per side, got {w}x{h}")
-    return w, h
 
 
 def has_display() -> bool:
@@ -52,7 +43,7 @@ def choose_backend(name: str) -> str:
 
 
 def make_backend(name: str, a, recording=None):
-    size = _size(a.size) if a.size else None
+    size = a.size
     if name == "openvr":
         from app.vr.openvr_backend import OpenVRBackend
 
@@ -94,10 +85,15 @@ def cmd_vr(a) -> int:
             why = " (no VR headset, no display)" if a.backend == "auto" and headless else ""
             print(f"sonicverse vr: {backend_name} backend{why}, {cfg.scene}, eyes {backend.width}x{backend.height} "
                   f"at {backend.target_hz:g} Hz" + (", audio only" if a.audio_only else ""), file=sys.stderr)
-        s.run(frames=frames, out=out)
-        if a.record:
-            s.recording.save(a.record)
-        written = s.save(out) if out else []
+        if a.record and a.record.endswith(".svrec"):
+            s.recording.stream_to(a.record)
+        try:
+            s.run(frames=frames, out=out)
+        finally:  # Ctrl-C, SIGTERM or an error: finish every file first (what ran is kept)
+            if a.record:
+                s.recording.save(a.record)
+            written = s.save(out) if out else []
+            s.recording.close()
         summary = s.summary()
     keys = ("frames", "missed_frames", "frame_ms_p50", "frame_ms_p99", "target_hz")
     if a.json:
@@ -119,7 +115,7 @@ def cmd_bench_vr(a) -> int:
         raise ConfigError(f"--culling-levels takes comma-separated integers, got '{a.culling_levels}'") from None
     if any(not 0 <= lv <= 4 for lv in levels):
         raise ConfigError("--culling-levels must be within 0-4 (each level x4 triangles)")
-    print(json.dumps(bench_vr([_size(s) for s in a.sizes.split(",")], a.frames, a.scene, a.audio_seconds,
+    print(json.dumps(bench_vr(a.sizes, a.frames, a.scene, a.audio_seconds,
                               a.culling_scene, levels)))
     return 0
 
@@ -130,12 +126,14 @@ def add_vr_commands(sub, bench_sub) -> None:
                        "robot that hears you. --backend auto picks OpenVR when a headset is there, the desktop "
                        "window when a display is there, otherwise a short headless session that writes stereo "
                        "frames, the binaural audio at your ears and the frame statistics to --out.")
-    v.add_argument("--backend", default="auto", choices=("auto", "openvr", "desktop", "headless"))
+    v.add_argument("--backend", default="auto", choices=("auto", "openvr", "desktop", "headless"),
+                   help="auto: a headset if one is there, else a desktop window, else headless (default: auto)")
     v.add_argument("--scene", default=None, help="scene spec (default: builtin:apartment)")
-    v.add_argument("--frames", type=int, default=None, help="stop after N frames (headless default: 180)")
-    v.add_argument("--size", default=None, help="eye size WxH (default: the headset's, else 512x512)")
-    v.add_argument("--rate", type=float, default=None, help="target frame rate, Hz (default: headset/display, "
-                   "headless 90)")
+    v.add_argument("--frames", type=A.count(1, 10**9), default=None, help="stop after N frames (headless default: 180)")
+    v.add_argument("--size", default=None, type=A.argtype(A.size),
+                   help="eye size WxH (default: the headset's, else 512x512)")
+    v.add_argument("--rate", type=A.number(1, 1000, unit="Hz"), default=None,
+                   help="target frame rate, Hz (default: headset/display, headless 90)")
     v.add_argument("--audio", default=None, choices=("offline", "live", "none"),
                    help="offline: rendered by the frame clock (headless default); live: sound card / JACK")
     v.add_argument("--audio-device", default=None, help="PortAudio device name or index for --audio live")
@@ -146,23 +144,26 @@ def add_vr_commands(sub, bench_sub) -> None:
                    help="load and draw only the rooms the eye may see (auto: in scenes of 250k+ triangles; below, "
                         "one merged mesh draws as fast on a CPU: see bench vr)")
     v.add_argument("--realtime", action="store_true", help="headless: pace frames to the wall clock")
-    v.add_argument("--record", default=None, metavar="FILE.npz", help="save the input for replay")
-    v.add_argument("--replay", default=None, metavar="FILE.npz", help="replay a recorded input (headless)")
-    v.add_argument("--write-frames", type=int, default=None, metavar="N",
+    v.add_argument("--record", default=None, metavar="FILE", type=A.out_file(".svrec", ".npz"),
+                   help="record the input for replay (written as it runs: .svrec; .npz at the end)")
+    v.add_argument("--replay", default=None, metavar="FILE", type=A.in_file(".svrec", ".npz"),
+                   help="replay a recorded input (headless)")
+    v.add_argument("--write-frames", type=A.count(0, 10**6), default=None, metavar="N",
                    help="save every N-th stereo frame as PNG (headless default: 10; 0: none)")
-    v.add_argument("--out", default=None, help="output folder (headless default: out/vr)")
-    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--out", default=None, type=A.out_dir, help="output folder (headless default: out/vr)")
+    v.add_argument("--seed", type=A.seed, default=0, help="seed of the robot's start and the scripted walk")
     v.add_argument("--json", action="store_true", help="print one JSON object with the frame statistics")
     v.set_defaults(func=cmd_vr)
 
     b = bench_sub.add_parser("vr", help="stereo frames/s of the headless loop; audio xruns while it runs flat out")
-    b.add_argument("--sizes", default="512x512,1080x1200", help="eye sizes (default: %(default)s)")
-    b.add_argument("--frames", type=int, default=60, help="frames per size (default: %(default)s)")
-    b.add_argument("--scene", default="builtin:apartment")
+    b.add_argument("--sizes", default="512x512,1080x1200",
+                   type=A.argtype(lambda t: [A.size(x) for x in t.split(",")]), help="eye sizes (default: %(default)s)")
+    b.add_argument("--frames", type=A.count(10, 100_000), default=60, help="frames per size (default: %(default)s)")
+    b.add_argument("--scene", default="builtin:apartment", help="scene spec (default: %(default)s)")
     b.add_argument("--culling-scene", default="builtin:apartment?seed=1", help="scene of the room-culling rows")
     b.add_argument("--culling-levels", default="0,3",
                    help="subdivision levels of the culling scene (each x4 triangles; default: %(default)s)")
-    b.add_argument("--audio-seconds", type=float, default=20.0,
+    b.add_argument("--audio-seconds", type=A.number(0, 3600, unit="s"), default=20.0,
                    help="seconds of the live-audio run on a private JACK dummy server (0: skip)")
     b.add_argument("--json", action="store_true", help="(always JSON)")
     b.set_defaults(func=cmd_bench_vr)

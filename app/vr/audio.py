@@ -37,12 +37,35 @@ class EarLog:
 
     def __init__(self, sample_rate: int, keep_s: float = 600.0):
         self.blocks: deque[np.ndarray] = deque()
+        self.sr = sample_rate
         self.n, self.cap = 0, int(keep_s * sample_rate)
+        self.sink = None  # a soundfile.SoundFile that gets every block as it comes (the whole session on disk)
+
+    def stream_to(self, path) -> None:
+        """Write every block from now on (and what is held already) to the WAV file ``path``."""
+        import soundfile as sf
+
+        self.close()
+        self.sink = sf.SoundFile(str(path), "w", self.sr, 2, subtype="FLOAT")
+        for b in self.blocks:
+            self.sink.write(b.T)
+
+    def flush(self) -> None:
+        if self.sink is not None:
+            self.sink.flush()  # libsndfile rewrites the header: a kill after this keeps every flushed sample
+
+    def close(self) -> None:
+        if self.sink is not None:
+            self.sink.close()
+            self.sink = None
 
     def add(self, block: np.ndarray) -> None:
         if block.shape[-1] == 0:
             return
-        self.blocks.append(np.asarray(block, np.float32))
+        block = np.asarray(block, np.float32)
+        if self.sink is not None:
+            self.sink.write(block.T)
+        self.blocks.append(block)
         self.n += block.shape[-1]
         while self.n - self.blocks[0].shape[-1] >= self.cap:
             self.n -= self.blocks.popleft().shape[-1]

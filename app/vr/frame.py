@@ -78,24 +78,62 @@ class FrameStats:
                 "histogram": self.histogram()}
 
 
+FRAME_DTYPE = np.dtype([("t", "<f8"), ("dt", "<f8"), ("head", "<f8", (4, 4)), ("hands", "<f8", (2, 4, 4)),
+                        ("hands_valid", "?", (2,)), ("buttons", "<u8", (2,))])
+
+
 class Recording:
-    """Frame inputs of a session, saved as one .npz (arrays + a JSON header)."""
+    """Frame inputs of a session. Written while the session runs as an append-only ``.svrec`` (a record log:
+    a kill loses at most the last second), or saved at the end as one ``.npz``; :meth:`load` reads both."""
 
     VERSION = 1
+    ARRAYS = ("t", "dt", "head", "hands", "hands_valid", "buttons")
 
     def __init__(self, meta: dict | None = None):
         self.meta = dict(meta or {})
         self.frames: list[FrameInput] = []
+        self._logs: list = []  # RecordLogs that get every frame as it is added
 
     def add(self, f: FrameInput) -> None:
         self.frames.append(FrameInput(f.index, f.t, f.dt, f.head.copy(), f.hands.copy(), f.hands_valid.copy(),
                                       f.buttons.copy(), f.quit))
+        for log in self._logs:
+            log.append((f.t, f.dt, f.head, f.hands, f.hands_valid, f.buttons))
+
+    def stream_to(self, path, sync_every: int = 90) -> Path:
+        """From now on, append every added frame to the ``.svrec`` file ``path`` (frames already added first),
+        synced to the disk every ``sync_every`` frames."""
+        from sonicverse_core.storage import RecordLog
+
+        log = RecordLog(path, FRAME_DTYPE, {"format": "sonicverse-input", "version": self.VERSION, **self.meta},
+                        sync_every)
+        for f in self.frames:
+            log.append((f.t, f.dt, f.head, f.hands, f.hands_valid, f.buttons))
+        self._logs.append(log)
+        return log.path
+
+    def sync(self) -> None:
+        for log in self._logs:
+            log.sync()
+
+    def close(self) -> None:
+        for log in self._logs:
+            log.close()
+        self._logs = []
 
     def save(self, path) -> Path:
+        """The whole recording as ``.npz`` (replaced atomically) or ``.svrec``."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.suffix == ".svrec":
+            log = next((g for g in self._logs if g.path.resolve() == path.resolve()), None)
+            if log is None:
+                self.stream_to(path)
+            self.sync()
+            return path
+        from sonicverse_core.storage import atomic_write
+
         fr = self.frames
-        with open(path, "wb") as fh:
+        with atomic_write(path) as fh:
             np.savez_compressed(
                 fh, header=np.array(json.dumps({"version": self.VERSION, **self.meta})),
                 t=np.array([f.t for f in fr]), dt=np.array([f.dt for f in fr]),
@@ -110,18 +148,37 @@ class Recording:
         path = Path(path)
         if not path.is_file():
             raise DataError(f"recording '{path}' not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["header"]))
-                arrays = {k: z[k] for k in ("t", "dt", "head", "hands", "hands_valid", "buttons")}
-        except (OSError, ValueError, KeyError) as exc:
-            raise DataError(f"'{path}' is not a Sonicverse input recording ({exc})") from None
-        if meta.get("version") != cls.VERSION:
-            raise DataError(f"'{path}': recording version {meta.get('version')} is not {cls.VERSION}")
+        if path.suffix == ".svrec":
+            from sonicverse_core.storage import read_records
+
+            meta, rec = read_records(path)
+            if meta.pop("format", None) != "sonicverse-input":
+                raise DataError(f"'{path}' is a record log, but not an input recording")
+            arrays = {k: rec[k] for k in cls.ARRAYS}
+        else:
+            import zipfile
+
+            try:
+                with np.load(path, allow_pickle=False) as z:
+                    meta = json.loads(str(z["header"]))
+                    arrays = {k: z[k] for k in cls.ARRAYS}
+            except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
+                raise DataError(f"'{path}' is not a Sonicverse input recording ({exc})") from None
+        if not isinstance(meta, dict) or meta.get("version") != cls.VERSION:
+            v = meta.get("version") if isinstance(meta, dict) else None
+            raise DataError(f"'{path}': recording version {v} is not {cls.VERSION}")
+        n = len(arrays["t"])
+        shapes = {"dt": (n,), "head": (n, 4, 4), "hands": (n, 2, 4, 4), "hands_valid": (n, 2), "buttons": (n, 2)}
+        for k, shape in shapes.items():
+            if arrays[k].shape != shape:
+                raise DataError(f"'{path}': '{k}' has shape {arrays[k].shape}, expected {shape} (mismatched arrays)")
+        if n == 0:
+            raise DataError(f"'{path}' holds no frames")
         rec = cls(meta)
-        for k in range(len(arrays["t"])):
+        for k in range(n):
             rec.frames.append(FrameInput(k, float(arrays["t"][k]), float(arrays["dt"][k]), arrays["head"][k],
-                                         arrays["hands"][k], arrays["hands_valid"][k], arrays["buttons"][k]))
+                                         arrays["hands"][k], arrays["hands_valid"][k].astype(bool),
+                                         arrays["buttons"][k].astype(np.uint64)))
         for f in rec.frames:
             if not (np.all(np.isfinite(f.head)) and np.all(np.isfinite(f.hands)) and np.isfinite(f.dt) and f.dt > 0):
                 raise DataError(f"'{path}': frame {f.index} has a non-finite pose or a non-positive time step")

@@ -25,6 +25,7 @@ from app.vr.transforms import head_pose, look_matrix
 from sonicverse_core.errors import ConfigError, SonicverseError
 
 WARMUP_FRAMES = 2  # not counted in the frame statistics (their intervals include the first render and audio block)
+SYNC_FRAMES = 90  # frames between syncs of the files a session writes as it runs (a second at 90 Hz)
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,7 @@ class VRSession:
         self.views = None
         self.frames_written: list[str] = []
         self._out: Path | None = None
+        self._traj_log = None
         self.last_views = None
         self.robot_view = None
         self.audio = None
@@ -156,7 +158,10 @@ class VRSession:
         self.task.step(self, f)
         doors = [d.open_fraction for d in self.scene.doors]
         rb = list(self.world.pose) if self.world is not None else []
-        self.trajectory.append(np.array([f.t, *f.head[:3, 3], *rb, *doors], np.float64))
+        row = np.array([f.t, *f.head[:3, 3], *rb, *doors], np.float64)
+        self.trajectory.append(row)
+        if self._traj_log is not None:
+            self._traj_log.append((row,))
 
     def frame(self) -> bool:
         """One frame; False when the backend asks to stop."""
@@ -195,17 +200,53 @@ class VRSession:
         return True
 
     def run(self, frames: int | None = None, out: str | Path | None = None) -> dict:
-        """Run until the backend stops or ``frames`` frames; returns :meth:`summary`."""
+        """Run until the backend stops or ``frames`` frames; returns :meth:`summary`. With ``out``, the input
+        recording (input.svrec), the trajectory (trajectory.svlog) and the audio at the ears (WAV) are written as
+        the session runs and synced every second, stats.json every 5 s: a kill loses about a second."""
         if out is not None:
-            self._out = Path(out)
-            self._out.mkdir(parents=True, exist_ok=True)
+            self._open_sinks(Path(out))
         self._last_in = None
         n = 0
         while frames is None or n < frames:
             if not self.frame():
                 break
             n += 1
+            if self._out is not None and n % SYNC_FRAMES == 0:
+                self._sync(stats=n % (5 * SYNC_FRAMES) == 0)
         return self.summary()
+
+    def _open_sinks(self, out: Path) -> None:
+        from sonicverse_core.storage import RecordLog
+
+        out.mkdir(parents=True, exist_ok=True)
+        self._out = out
+        self.recording.stream_to(out / "input.svrec", sync_every=SYNC_FRAMES)
+        width = len(self._traj_columns())
+        self._traj_log = RecordLog(out / "trajectory.svlog", np.dtype([("row", "<f8", (width,))]),
+                                   {"format": "sonicverse-trajectory", "columns": self._traj_columns()},
+                                   sync_every=SYNC_FRAMES)
+        for row in self.trajectory:
+            self._traj_log.append((row,))
+        if self.audio is not None:
+            for ears, name in zip(self.audio.ears, ("binaural.wav", "robot_ears.wav")):
+                ears.stream_to(out / name)
+
+    def _traj_columns(self) -> list[str]:
+        rb = ["robot_x", "robot_y", "robot_yaw"] if self.world is not None else []
+        return ["t", "head_x", "head_y", "head_z", *rb, *(f"door:{d.name}" for d in self.scene.doors)]
+
+    def _sync(self, stats: bool = False) -> None:
+        """Push what the sinks hold to the disk (and stats.json, replaced atomically)."""
+        from sonicverse_core.storage import write_text_atomic
+
+        self.recording.sync()
+        if self._traj_log is not None:
+            self._traj_log.sync()
+        if self.audio is not None:
+            for ears in self.audio.ears:
+                ears.flush()
+        if stats and self._out is not None:
+            write_text_atomic(self._out / "stats.json", json.dumps({**self.summary(), "partial": True}, indent=1))
 
     def _write_frame(self, k: int, views: np.ndarray) -> None:
         from PIL import Image
@@ -229,29 +270,38 @@ class VRSession:
         return s
 
     def save(self, out) -> list[str]:
-        """Write the session's outputs: stats.json, input.npz (replayable), trajectory.npy, binaural.wav (the
-        user's ears), robot_ears.wav (what the robot heard), and the last stereo frame."""
+        """Finish the session's outputs in ``out``: stats.json, input.svrec and input.npz (replayable),
+        trajectory.npy, binaural.wav (the user's ears), robot_ears.wav (what the robot heard), the last stereo
+        frame. Files streamed while running are closed; the others are replaced atomically."""
+        from sonicverse_core.storage import atomic_write, write_text_atomic
+
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        written = ["stats.json", "input.npz", "trajectory.npy"]
+        streamed = self._out is not None and out.resolve() == self._out.resolve()
+        if not streamed:
+            self.recording.save(out / "input.svrec")
+        self.recording.close()
+        if self._traj_log is not None:
+            self._traj_log.close()
+        written = ["stats.json", "input.svrec", "input.npz", "trajectory.npy"]
         self.recording.save(out / "input.npz")
-        np.save(out / "trajectory.npy", np.array(self.trajectory))
+        with atomic_write(out / "trajectory.npy") as fh:
+            np.save(fh, np.array(self.trajectory))
         if self.audio is not None:
-            import soundfile as sf
-
-            sf.write(out / "binaural.wav", self.audio.heard(0).T, self.cfg.sample_rate, subtype="FLOAT")
-            written.append("binaural.wav")
-            if self.world is not None:
-                sf.write(out / "robot_ears.wav", self.audio.heard(1).T, self.cfg.sample_rate, subtype="FLOAT")
-                written.append("robot_ears.wav")
+            for k, (ears, name) in enumerate(zip(self.audio.ears, ("binaural.wav", "robot_ears.wav"))):
+                if not streamed:
+                    ears.stream_to(out / name)
+                ears.close()
+                written.append(name)
         if self.last_views is not None:
             from PIL import Image
 
-            Image.fromarray(np.concatenate(list(self.last_views), axis=1)).save(out / "last_stereo.png")
+            with atomic_write(out / "last_stereo.png") as fh:
+                Image.fromarray(np.concatenate(list(self.last_views), axis=1)).save(fh, format="PNG")
             written.append("last_stereo.png")
         written += self.frames_written
         summary = {**self.summary(), "config": asdict(self.cfg), "files": written}
-        (out / "stats.json").write_text(json.dumps(summary, indent=1))
+        write_text_atomic(out / "stats.json", json.dumps(summary, indent=1))
         return written
 
     def close(self) -> None:

@@ -22,6 +22,9 @@ from scipy.sparse.csgraph import dijkstra
 from sonicverse_core.errors import ConfigError, PoseError
 from sonicverse_core.scene.model import Scene
 
+MAX_CELLS = 16_000_000  # cells of one grid (200 m x 200 m at 5 cm): its geodesic graph stays within ~1.5 GB
+RAYS_PER_BATCH = 1 << 20  # the floor rays are cast in batches: memory bounded by the grid, not the ray count
+
 _MOVES = [(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)
           if (dy, dx) != (0, 0) and max(abs(dy), abs(dx)) <= 2 and np.gcd(abs(dy), abs(dx)) == 1]
 
@@ -60,21 +63,33 @@ class NavGrid:
         self.origin = np.floor(lo / c) * c - c
         self.shape = (int(np.ceil((hi[1] - self.origin[1]) / c)) + 2, int(np.ceil((hi[0] - self.origin[0]) / c)) + 2)
         ny, nx = self.shape
+        if ny * nx > MAX_CELLS:
+            area = (hi[0] - lo[0]) * (hi[1] - lo[1])
+            suggest = np.ceil(np.sqrt(area / MAX_CELLS) * 100 * 1.05) / 100
+            raise ConfigError(f"the scene's floor plan ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m) needs "
+                              f"{ny * nx / 1e6:.0f}M navigation cells of {c} m (at most {MAX_CELLS / 1e6:.0f}M): use "
+                              f"NavConfig(cell={suggest:.2f}) or a smaller scene")
         ss = config.supersample
         sub = (np.arange(ss) + 0.5) / ss
         xs = self.origin[0] + (np.arange(nx)[:, None] + sub[None]).ravel() * c
-        ys = self.origin[1] + (np.arange(ny)[:, None] + sub[None]).ravel() * c
-        gx, gy = np.meshgrid(xs, ys)
         z0 = self.z_floor + config.robot_height
-        o = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z0)], axis=1)
-        d = np.tile([0.0, 0.0, -1.0], (len(o), 1))
-        h = self.caster.first_hit(o, d, config.robot_height + 1.0)
-        hit_z = z0 - h.distance
-        floor = h.hit & (h.normal[:, 2] > 0.7) & (np.abs(hit_z - self.z_floor) <= config.max_step)
-        if "traversable" in scene.metadata:  # iGibson ships its own traversability map: respect it too
-            from sonicverse_core.scene.loaders.igibson import traversable_at
+        floor = np.zeros((ny * ss, nx * ss), dtype=bool)
+        rows_per = max(1, RAYS_PER_BATCH // len(xs))
+        for r0 in range(0, ny * ss, rows_per):  # a batch of supersample rows at a time
+            r = np.arange(r0, min(r0 + rows_per, ny * ss))
+            ys = self.origin[1] + (r // ss + sub[r % ss]) * c
+            gx, gy = np.meshgrid(xs, ys)
+            o = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z0)], axis=1)
+            d = np.zeros_like(o)
+            d[:, 2] = -1.0
+            h = self.caster.first_hit(o, d, config.robot_height + 1.0)
+            hit_z = z0 - h.distance
+            ok = h.hit & (h.normal[:, 2] > 0.7) & (np.abs(hit_z - self.z_floor) <= config.max_step)
+            if "traversable" in scene.metadata:  # iGibson ships its own traversability map: respect it too
+                from sonicverse_core.scene.loaders.igibson import traversable_at
 
-            floor &= traversable_at(scene, o[:, :2])
+                ok &= traversable_at(scene, o[:, :2])
+            floor[r] = ok.reshape(len(r), -1)
         floor = floor.reshape(ny, ss, nx, ss).all(axis=(1, 3))
         floor &= ~self._vertical_obstacles(scene)
         self._finish(floor)
@@ -99,7 +114,7 @@ class NavGrid:
             sizes = np.bincount(self.labels.ravel())[1:]
             self.main_label = int(np.argmax(sizes)) + 1
         else:
-            self.main_label = 0
+            self.main_label = -1  # no component: no cell matches (labels are >= 0)
         for arr in (self.floor, self.navigable, self.labels, self.clearance):
             arr.setflags(write=False)
 
@@ -204,9 +219,9 @@ class NavGrid:
     @cached_property
     def _graph(self):
         ny, nx = self.shape
-        ids = -np.ones(self.shape, dtype=np.int64)
+        ids = -np.ones(self.shape, dtype=np.int32)
         nav = self.labels > 0
-        ids[nav] = np.arange(np.count_nonzero(nav))
+        ids[nav] = np.arange(np.count_nonzero(nav), dtype=np.int32)
         src, dst, w = [], [], []
         pad = np.pad(nav, 2)
         for dy, dx in _MOVES:

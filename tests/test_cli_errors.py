@@ -1,0 +1,123 @@
+"""The hostile-user sweep: bad invocations of every command end in one line `sonicverse: error: ...` and exit code 2,
+never a traceback, and before any long work (output paths and formats are checked when the line is parsed)."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from app.cli import main
+
+
+@pytest.fixture(scope="module")
+def bad(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bad")
+    (d / "folder.wav").mkdir()
+    (d / "notes.txt").write_text("hello")
+    (d / "noise.wav").write_bytes(b"RIFF\x00\x00\x00\x00WAVEjunk")
+    (d / "corrupt.npz").write_bytes(b"PK\x03\x04 not a zip at all")
+    np.savez(d / "other.npz", x=np.arange(3))
+    (d / "trunc.svrec").write_bytes(b"SVREC1\n{\"scene\": ")
+    (d / "empty.svrec").write_bytes(b"")
+    return d
+
+
+def table(d):
+    out = str(d / "ok.wav")
+    r = ["render", "shoebox:6x4x3", "--sound", "sofa", "--source", "1,1,1", "--listener", "3,2,1.5"]
+    return [
+        # argparse itself: unknown command, option, missing value, wrong choice
+        [], ["frobnicate"], ["scene"], ["scene", "info"], ["scene", "info", "shoebox:6x4x3", "--nope"],
+        ["eval", "--task", "Nope", "--agent", "oracle"],
+        # numbers
+        [*r, "--out", out, "--seconds", "nan"], [*r, "--out", out, "--seconds", "-1"],
+        [*r, "--out", out, "--seconds", "inf"], [*r, "--out", out, "--sample-rate", "7"],
+        [*r, "--out", out, "--block", "0"], [*r, "--out", out, "--rays", "-5"],
+        ["bake", "shoebox:6x4x3", "--probes", "-3"], ["bake", "shoebox:6x4x3", "--seed", "-1"],
+        ["bake", "shoebox:6x4x3", "--at", "1,2"], ["bake", "shoebox:6x4x3", "--at", "1,nan,1"],
+        ["bench", "env", "--steps", "0"], ["bench", "env", "--workers", "-1"], ["bench", "env", "--size", "x"],
+        ["bench", "audio", "--sources", "0"], ["bench", "audio", "--seconds", "nan"],
+        ["bench", "rays", "--rays", "0"], ["bench", "accuracy", "--reference-rays", "10"],
+        ["bench", "vr", "--sizes", "512"], ["bench", "vr", "--frames", "2"], ["bench", "vr", "--audio-seconds", "-1"],
+        ["eval", "--task", "AudioGoal", "--agent", "oracle", "--episodes", "0"],
+        ["eval", "--task", "AudioGoal", "--agent", "oracle", "--seed", "-1"],
+        ["eval", "--task", "AudioGoal", "--agent", "oracle", "--max-steps", "0"],
+        ["vr", "--frames", "0"], ["vr", "--rate", "nan"], ["vr", "--size", "10x10"], ["vr", "--seed", "-1"],
+        ["audio", "loopback-test", "--seconds", "nan"], ["audio", "live", "--sources", "-1"],
+        ["demo", "--seconds", "0"],
+        # positions
+        [*r[:5], "--source", "1,1", "--listener", "3,2,1.5", "--out", out],
+        [*r[:5], "--source", "1,1,1", "--listener", "3,2,x", "--out", out],
+        # output paths: a folder, a missing or unwritable place, an unsupported format
+        [*r, "--out", str(d / "folder.wav")], [*r, "--out", str(d / "x.mp3")], [*r, "--out", str(d)],
+        [*r, "--out", str(d / "notes.txt" / "a.wav")],
+        ["scene", "map", "shoebox:6x4x3", "--out", str(d / "map.jpg")],
+        ["scene", "map", "shoebox:6x4x3", "--out", str(d / "notes.txt" / "m.png")],
+        ["bench", "accuracy", "--plot", str(d / "p.svg")], ["demo", "--out", str(d / "notes.txt")],
+        ["vr", "--out", str(d / "notes.txt")], ["vr", "--record", str(d / "r.txt")],
+        ["eval", "--task", "AudioGoal", "--agent", "oracle", "--csv", str(d / "folder.wav")],
+        ["audio", "live", "--record", str(d / "rec.flac")],
+        # inputs: missing, not a file, corrupt
+        ["vr", "--backend", "headless", "--replay", str(d / "missing.npz")],
+        ["vr", "--backend", "headless", "--replay", str(d / "notes.txt")],
+        ["vr", "--backend", "headless", "--replay", str(d / "corrupt.npz")],
+        ["vr", "--backend", "headless", "--replay", str(d / "other.npz")],
+        ["vr", "--backend", "headless", "--replay", str(d / "trunc.svrec")],
+        ["vr", "--backend", "headless", "--replay", str(d / "empty.svrec")],
+        [*r[:3], "--sound", str(d / "noise.wav"), *r[5:], "--out", out],
+        [*r[:3], "--sound", str(d / "missing.wav"), *r[5:], "--out", out],
+        [*r[:3], "--sound", "sofa/99", *r[5:], "--out", out],
+        # scenes
+        ["scene", "info", "shoebox:0.3x0.3x0.3x"], ["scene", "info", "shoebox:-1x2x3"],
+        ["scene", "info", "shoebox:nanx2x3"], ["scene", "info", str(d / "notes.txt")],
+        ["vr", "--backend", "headless", "--scene", "shoebox:0.3x0.3x0.3", "--frames", "3", "--out", str(d / "vr")],
+    ]
+
+
+def test_every_bad_invocation_is_one_line_and_exit_2(bad, capsys):
+    failures = []
+    for argv in table(bad):
+        code = main(argv)
+        cap = capsys.readouterr()
+        lines = cap.err.strip().splitlines()
+        if code != 2 or len(lines) != 1 or not lines[0].startswith("sonicverse: error:") or "Traceback" in cap.err:
+            failures.append((argv, code, cap.err[-400:]))
+    assert not failures, "\n".join(f"{a} -> {c}: {e}" for a, c, e in failures)
+
+
+def test_nothing_is_written_when_the_output_is_refused(bad, capsys):
+    assert main(["render", "shoebox:6x4x3", "--sound", "sofa", "--source", "1,1,1", "--listener", "3,2,1.5",
+                 "--out", str(bad / "out.mp3")]) == 2
+    assert not (bad / "out.mp3").exists()
+
+
+def test_help_and_version_exit_0(capsys):
+    assert main(["--version"]) == 0 and capsys.readouterr().out.startswith("sonicverse ")
+    assert main(["render", "--help"]) == 0 and "--seconds" in capsys.readouterr().out
+
+
+def test_every_option_has_help():
+    """No option of any command is left without a help text."""
+    import argparse
+
+    from app.cli import build_parser
+
+    missing = []
+
+    def walk(p, path):
+        for act in p._actions:
+            if isinstance(act, argparse._SubParsersAction):
+                for name, sp in act.choices.items():
+                    walk(sp, path + [name])
+            elif act.option_strings and act.help in (None, "") and act.dest != "help":
+                missing.append(" ".join(path + [act.option_strings[-1]]))
+
+    walk(build_parser(), ["sonicverse"])
+    assert not missing, missing
+
+
+def test_a_closed_pipe_is_not_an_error():
+    """`sonicverse ... --json | head -c 10`: the reader goes away; no traceback, exit 0."""
+    p = subprocess.run(f"'{sys.executable}' -m app.cli scene info builtin:apartment --json | head -c 10",
+                       shell=True, capture_output=True, text=True, timeout=300)
+    assert "Traceback" not in p.stderr and "Exception" not in p.stderr, p.stderr
