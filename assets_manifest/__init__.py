@@ -14,9 +14,21 @@ MANIFEST = Path(__file__).with_name("manifest.json")
 
 
 def cache_dir() -> Path:
-    """Where derived assets are cached: $SONICVERSE_CACHE, else ~/.cache/sonicverse."""
-    d = Path(os.environ.get("SONICVERSE_CACHE", Path.home() / ".cache" / "sonicverse"))
-    d.mkdir(parents=True, exist_ok=True)
+    """Where derived assets are cached: $SONICVERSE_CACHE, else the platform's user cache folder (platformdirs:
+    ~/.cache/sonicverse on Linux, ~/Library/Caches/sonicverse on macOS, %LOCALAPPDATA%\\sonicverse\\Cache on
+    Windows)."""
+    env = os.environ.get("SONICVERSE_CACHE")
+    if env:
+        d = Path(env)
+    else:
+        import platformdirs
+
+        d = Path(platformdirs.user_cache_dir("sonicverse", appauthor=False))
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise AssetError(f"cannot create the cache folder {d} ({exc.strerror}): set SONICVERSE_CACHE to a writable "
+                         f"folder") from None
     return d
 
 
@@ -34,7 +46,7 @@ def entry(name: str) -> dict:
     try:
         return manifest()[name]
     except KeyError:
-        raise AssetError(f"unknown asset '{name}'; `sonicverse assets list` shows them") from None
+        raise AssetError(f"unknown asset '{name}'; assets_manifest/manifest.json lists them") from None
 
 
 def sha256_bytes(data: bytes) -> str:

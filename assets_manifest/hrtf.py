@@ -57,9 +57,16 @@ def kemar() -> HrirSet:
     cached = cache_dir() / f"kemar-v2-{want[:12]}.npz"
     if cached.is_file():
         try:
-            z = np.load(cached)
-            return HrirSet("mit_kemar", int(z["sample_rate"]), z["directions"], z["hrirs"])
-        except Exception:  # corrupt cache: rebuild below
+            with np.load(cached) as z:
+                sr, dirs, hrirs = int(z["sample_rate"]), z["directions"], z["hrirs"]
+            if not (hrirs.ndim == 3 and hrirs.shape[1] == 2 and dirs.shape == (len(hrirs), 3)
+                    and np.isfinite(hrirs).all() and np.isfinite(dirs).all() and 8000 <= sr <= 192000):
+                raise ValueError(f"shapes {hrirs.shape} / {dirs.shape}, or non-finite values")
+            return HrirSet("mit_kemar", sr, dirs, hrirs)
+        except Exception as exc:  # noqa: BLE001 - a corrupt or foreign cache file: rebuilt below
+            import logging
+
+            logging.getLogger(__name__).warning("HRTF cache %s is corrupt (%s): rebuilt", cached, exc)
             cached.unlink(missing_ok=True)
     got = sha256_file(src)
     if got != want:
@@ -72,9 +79,10 @@ def kemar() -> HrirSet:
     dirs = sph_to_vec(vp[:, 0], vp[:, 1])
     hrirs = np.stack([np.asarray(f.data, np.float64).T for f in h.data]).astype(np.float32)
     sr = int(h.samplerate)
-    tmp = cached.with_suffix(".tmp.npz")
-    np.savez(tmp, sample_rate=sr, directions=dirs, hrirs=hrirs)
-    tmp.replace(cached)
+    from sonicverse_core.storage import atomic_write
+
+    with atomic_write(cached) as fh:
+        np.savez(fh, sample_rate=sr, directions=dirs, hrirs=hrirs)
     return HrirSet("mit_kemar", sr, dirs, hrirs)
 
 
@@ -98,11 +106,24 @@ def load_sofa(path: str | Path) -> HrirSet:
     if ir.ndim != 3 or ir.shape[1] != 2:
         raise AssetError(f"{p}: Data_IR must be (M, 2, N), got {ir.shape}")
     pos = np.asarray(s.SourcePosition, dtype=np.float64)
+    if pos.ndim != 2 or pos.shape[0] != ir.shape[0] or pos.shape[1] < 2 or not np.isfinite(pos).all():
+        raise AssetError(f"{p}: SourcePosition must be (M, 3) finite values for M = {ir.shape[0]} measurements, "
+                         f"got {pos.shape}")
     ptype = str(getattr(s, "SourcePosition_Type", "spherical")).lower()
     if ptype.startswith("cartesian"):
-        dirs = pos / np.linalg.norm(pos, axis=1, keepdims=True)
+        radius = np.linalg.norm(pos, axis=1)
+        if np.any(radius <= 0):
+            raise AssetError(f"{p}: a source position at the head's centre has no direction")
+        dirs = pos / radius[:, None]
     else:
+        radius = pos[:, 2] if pos.shape[1] > 2 else np.ones(len(pos))
         dirs = sph_to_vec(pos[:, 0], pos[:, 1])
+    # several radii (near-field sets): keep the farthest measurement of each direction (the far field)
+    key = np.round(dirs, 5)
+    order = np.lexsort((-radius, *key.T[::-1]))
+    _, first = np.unique(key[order], axis=0, return_index=True)
+    keep = np.sort(order[first])
+    dirs, ir = dirs[keep], ir[keep]
     sr = int(np.asarray(s.Data_SamplingRate).ravel()[0])
     if not np.all(np.isfinite(ir)):
         raise AssetError(f"{p}: HRIRs contain NaN or infinite values")

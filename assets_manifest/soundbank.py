@@ -191,6 +191,12 @@ def load_sound(name: str) -> tuple[np.ndarray, int]:
 
     try:
         x, sr = sf.read(str(p), dtype="float32", always_2d=True)
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 - libsndfile's errors come in several types
         raise AssetError(f"cannot read sound file {p}: {exc}") from None
+    if x.size == 0:
+        raise AssetError(f"sound file {p} holds no samples")
+    bad = int(np.count_nonzero(~np.isfinite(x)))
+    if bad:
+        raise AssetError(f"sound file {p} has {bad} NaN or infinite samples (a float WAV written by a broken "
+                         f"program?): fix or re-export it")
     return x.mean(axis=1), sr

@@ -2,11 +2,16 @@
 from __future__ import annotations
 
 import hashlib
+import logging
+import os
 import shutil
 import subprocess
+
 import numpy as np
 
 from sonicverse_core.errors import AssetError
+
+log = logging.getLogger(__name__)
 
 
 def espeak_path() -> str:
@@ -28,19 +33,27 @@ def speak(text: str, voice: str = "en-us", speed: int = 150, pitch: int = 50, pa
         raise AssetError("cannot speak an empty text")
     key = hashlib.sha256(f"{text}|{voice}|{speed}|{pitch}".encode()).hexdigest()[:16]
     path = cache_dir() / "speech" / f"{key}.wav"
-    if not path.is_file():
+    x = None
+    if path.is_file():  # a cached file is used only when it reads back whole and finite; otherwise made again
+        try:
+            x, sr = sf.read(str(path), dtype="float32", always_2d=True)
+            if x.size == 0 or not np.isfinite(x).all():
+                raise ValueError("empty or non-finite samples")
+        except Exception as exc:  # noqa: BLE001 - libsndfile's errors come in several types
+            log.warning("cached speech %s is corrupt (%s): made again", path, exc)
+            x = None
+    if x is None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.wav")
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.wav")
         r = subprocess.run([espeak_path(), "-v", voice, "-s", str(speed), "-p", str(pitch), "-w", str(tmp), text],
                            capture_output=True, text=True)
         if r.returncode != 0 or not tmp.is_file():
             raise AssetError(f"espeak-ng failed for voice '{voice}': {r.stderr.strip() or r.returncode}")
+        x, sr = sf.read(str(tmp), dtype="float32", always_2d=True)
+        if x.size == 0 or not np.isfinite(x).all():
+            tmp.unlink(missing_ok=True)
+            raise AssetError(f"espeak-ng made no usable audio for voice '{voice}' and text {text[:40]!r}")
         tmp.replace(path)
-    try:
-        x, sr = sf.read(str(path), dtype="float32", always_2d=True)
-    except Exception as exc:
-        path.unlink(missing_ok=True)
-        raise AssetError(f"cached speech {path} is corrupt ({exc}); it was removed, run again") from None
     x = x[:, 0]
     if sr != sample_rate:
         g = np.gcd(sr, sample_rate)

@@ -11,7 +11,7 @@ import sonicverse_core.tasks  # noqa: F401  (registers the ids)
 from sonicverse_core.errors import ActionError
 from sonicverse_core.tasks import ENV_IDS
 from sonicverse_core.tasks.episodes import GOAL_RADIUS, SUCCESS_RADIUS, homes
-from sonicverse_core.tasks.metrics import mean_ci95, shortest_actions, sna, spl
+from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95, shortest_actions, sna, spl
 
 HOME = ("builtin:apartment?seed=6000",)
 
@@ -144,8 +144,13 @@ def test_metrics():
     assert spl(True, 5.0, 10.0) == 0.5 and spl(False, 5.0, 5.0) == 0.0 and spl(True, 5.0, 4.0) == 1.0
     assert sna(True, 50, 200) == 0.25 and sna(False, 50, 50) == 0.0
     assert shortest_actions(7.0, 0.7, 0.1) == 100
-    ci = mean_ci95([1, 0, 1, 1])
-    assert ci["mean"] == 0.75 and 0 < ci["ci95"] < 1
+    ci = mean_ci95([1.0, 2.0, 3.0, 4.0])  # t(0.975, 3) = 3.182, s = 1.291, n = 4
+    assert ci["mean"] == 2.5 and np.allclose(ci["ci95"], [2.5 - 2.0540, 2.5 + 2.0540], atol=1e-3)
+    # Wilson: 2 of 30 gives [0.0185, 0.2132] (a t-interval gave +-0.000 for 0 of 30 and misplaced 2 of 30)
+    w = rate_ci95([1, 1] + [0] * 28)
+    assert np.allclose(w["ci95"], [0.01848, 0.21323], atol=1e-4) and w["mean"] == 2 / 30
+    z = rate_ci95([0] * 30)
+    assert z["ci95"][0] == 0.0 and np.isclose(z["ci95"][1], 0.11351, atol=1e-4)
     assert SUCCESS_RADIUS == 0.36
 
 
@@ -273,3 +278,33 @@ def test_bench_env_reports_steps_per_second(cli):
     b = json.loads(r.stdout)
     assert b["steps_per_s"] > 0 and b["reference_depth_renders_per_s"] > 0
     assert set(b["breakdown_ms"]) >= {"physics_ms", "audio_render_ms", "spectrogram_ms", "depth_render_ms"}
+
+
+def test_spectrogram_frames_match_the_librosa_definition_and_the_stream_equals_the_full_stft():
+    """Periodic Hann 400 / hop 160 / FFT 512 magnitudes, frame for frame, against torch.stft (librosa's definition,
+    center=False on the same window); the streaming spectrogram equals the full one block after block."""
+    import torch
+
+    from sonicverse_core.sensors.audio import HOP, N_FFT, WIN, Spectrogram, StreamingSpectrogram
+
+    rng = np.random.default_rng(3)
+    n = 16000
+    x = rng.normal(size=(2, n)).astype(np.float32) * 0.1
+    full = Spectrogram(n, pool=(1, 1))
+    ours = np.expm1(full(x).astype(np.float64))  # (2, F, T) magnitudes, Nyquist bin dropped
+    # torch (like librosa) frames n_fft samples with the window centred in them, (512 - 400) / 2 = 56 on each side
+    start, pad = (n - WIN) % HOP, (N_FFT - WIN) // 2
+    xp = np.pad(x[:, start:].astype(np.float64), ((0, 0), (pad, pad)))
+    ref = torch.stft(torch.from_numpy(xp), N_FFT, HOP, WIN,
+                     window=torch.hann_window(WIN, periodic=True, dtype=torch.float64), center=False,
+                     return_complex=True).abs().numpy()[:, :-1, :]  # (2, 256, frames): Nyquist dropped as ours
+    assert ours.shape == ref.shape
+    np.testing.assert_allclose(ours, ref, rtol=2e-4, atol=2e-5)
+
+    stream = StreamingSpectrogram(n, pool=(4, 2))
+    pooled = Spectrogram(n, pool=(4, 2))
+    y = rng.normal(size=(2, 5 * n)).astype(np.float32) * 0.1
+    for k in range(0, 5 * n, 1600):  # 0.1 s steps at 16 kHz
+        got = stream.push(y[:, k:k + 1600])
+        if k + 1600 >= n:
+            np.testing.assert_allclose(got, pooled(y[:, k + 1600 - n:k + 1600]), rtol=1e-5, atol=1e-6)

@@ -247,8 +247,13 @@ class AudioCore:
                 tele[C.FAULTS] -= 1
                 raise RuntimeError("injected fault (test hook)")
             if self.mic is not None:
-                np.multiply(indata[:, self.cfg.mic_channel], 1.0, out=self.mic_block)
-                sh.mic.write(self.mic_block[None])
+                mb = self.mic_block
+                np.multiply(indata[:, self.cfg.mic_channel], 1.0, out=mb)
+                if not np.isfinite(np.dot(mb, mb)):  # a NaN/inf sample (a broken driver): zeros, counted
+                    np.nan_to_num(mb, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+                    np.clip(mb, -1e6, 1e6, out=mb)
+                    tele[C.MIC_NONFINITE] += 1
+                sh.mic.write(mb[None])
                 mic_written = True
                 self.mic.pending = self.mic_block
             self._apply_poses()
@@ -268,6 +273,7 @@ class AudioCore:
                 sh.ears[k].write(outs[k])
             if self.door_change:
                 self._apply_doors()
+            tele[C.RECOVERIES] = self.r.stats["recoveries"]
         except Exception as exc:  # noqa: BLE001 - the callback must never raise into PortAudio
             outdata.fill(0.0)
             if self.mic is not None and not mic_written:  # the mic ring stays in step with the frame counter

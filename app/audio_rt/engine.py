@@ -311,5 +311,6 @@ class AudioEngine:
             "reported_latency_ms": {"input": round(1000 * f[C.LAT_IN], 3), "output": round(1000 * f[C.LAT_OUT], 3)},
             "pose_frames": int(t[C.POSE_FRAMES]), "pose_reads_torn": int(t[C.POSE_TORN]),
             "robot_blocks": int(t[C.ROBOT_BLOCKS]), "robot_blocks_skipped": int(t[C.ROBOT_SKIPPED]),
+            "mic_blocks_nonfinite": int(t[C.MIC_NONFINITE]), "renderer_recoveries": int(t[C.RECOVERIES]),
         }
 

@@ -30,13 +30,25 @@ def cmd_render(a) -> int:
     r = AcousticRenderer(scene, cfg, probes=probes)
     r.add_source(sig, src, loop=True, sample_rate=sr)
     r.add_listener(lis[:3], lis[3] if len(lis) == 4 else 0.0)
-    y = r.render(a.seconds)[0]
-    y = y[:, : int(a.seconds * cfg.sample_rate)]
-    sf.write(a.out, y.T, cfg.sample_rate, subtype="FLOAT")
-    res = {"out": a.out, "sample_rate": cfg.sample_rate, "seconds": a.seconds,
-           "peak": [float(np.max(np.abs(c))) for c in y], "rms": [float(np.sqrt(np.mean(c.astype(float) ** 2)))
-                                                                 for c in y],
-           "subsystems": r.subsystems}
+    n = int(round(a.seconds * cfg.sample_rate))
+    peak, energy = np.zeros(2), np.zeros(2)
+    from sonicverse_core.progress import progress
+    from sonicverse_core.storage import atomic_write
+
+    # streamed block by block into a temporary file that replaces the target at the end: memory does not grow
+    # with --seconds, and an interrupted render leaves no half-written output
+    fmt = "FLAC" if a.out.lower().endswith(".flac") else "WAV"
+    with atomic_write(a.out) as fh, sf.SoundFile(fh, "w", cfg.sample_rate, 2, subtype="FLOAT" if fmt == "WAV"
+                                                   else "PCM_24", format=fmt) as out:
+        done = 0
+        for _ in progress(range(-(-n // cfg.block)), desc="rendering", enabled=not a.json and a.seconds > 30):
+            y = r.render_block()[0][:, : n - done].astype(np.float64)
+            out.write(y.T)
+            peak = np.maximum(peak, np.abs(y).max(axis=1))
+            energy += np.sum(y * y, axis=1)
+            done += y.shape[1]
+    res = {"out": a.out, "sample_rate": cfg.sample_rate, "seconds": a.seconds, "peak": peak.tolist(),
+           "rms": np.sqrt(energy / max(n, 1)).tolist(), "subsystems": r.subsystems}
     print(json.dumps(res) if a.json else f"wrote {a.out} ({', '.join(r.subsystems)})")
     return 0
 

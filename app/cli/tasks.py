@@ -28,7 +28,9 @@ def cmd_eval(a) -> int:
         print(json.dumps(res))
     else:
         for k in ("sr", "spl", "sna", "distance_to_goal"):
-            print(f"{k:>16}: {res[k]['mean']:.3f} ± {res[k]['ci95']:.3f}")
+            lo, hi = res[k]["ci95"]
+            ci = f"[{lo:.3f}, {hi:.3f}]" if lo is not None else "[n/a]"
+            print(f"{k:>16}: {res[k]['mean']:.3f}  95% CI {ci}")
         print(f"per-episode CSV: {res['csv']}")
     return 0
 

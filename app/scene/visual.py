@@ -228,5 +228,7 @@ class VisualScene:
 
     def close(self) -> None:
         if self.renderer is not None:
-            self.renderer.delete()
+            from sonicverse_core.sensors.camera import release_offscreen
+
+            release_offscreen(self.renderer)
             self.renderer = None

@@ -35,7 +35,7 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
              csv_path: str | Path | None = None, maps: str | Path | None = None, video: str | Path | None = None,
              env_kwargs: dict | None = None, progress=None) -> dict:
     from agents import make_agent
-    from sonicverse_core.tasks.metrics import mean_ci95
+    from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
 
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
@@ -86,7 +86,7 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     out = {"task": task, "agent": agent, "episodes": len(rows), "split": split, "sounds": sounds, "seed": seed}
     for key, col in (("sr", "success"), ("spl", "spl"), ("sna", "sna"), ("soft_spl", "soft_spl"),
                      ("distance_to_goal", "distance_to_goal")):
-        out[key] = mean_ci95(r[col] for r in rows)
+        out[key] = (rate_ci95 if key == "sr" else mean_ci95)(r[col] for r in rows)
     out["collisions_per_episode"] = float(np.mean([r["collisions"] for r in rows]))
     out["steps_per_episode"] = float(np.mean([r["steps"] for r in rows]))
     if csv_path:

@@ -42,18 +42,54 @@ class HrtfInterpolator:
         self.filters = (aligned / max(norm, 1e-12)).astype(np.float32)
         self.onsets = start / sample_rate  # seconds (the PRE samples are part of the filter)
         self.taps = taps
-        hull = ConvexHull(self.directions)
+        self._complete_sphere()
+        try:
+            hull = ConvexHull(self.directions)
+        except Exception as exc:  # noqa: BLE001 - scipy's QhullError: a degenerate layout
+            from sonicverse_core.errors import AssetError
+
+            raise AssetError(f"HRTF set '{self.name}': its {len(self.directions)} directions do not span a sphere "
+                             f"({str(exc).splitlines()[0]})") from None
         self._tri = hull.simplices.astype(np.int64)
         # inverse of each triangle's vertex matrix for barycentric weights
         self._inv = np.linalg.inv(self.directions[self._tri].transpose(0, 2, 1))
         self._centroid = self.directions[self._tri].mean(1)
         self._centroid /= np.linalg.norm(self._centroid, axis=1, keepdims=True)
 
+    def _complete_sphere(self) -> None:
+        """Sets that do not surround the head get virtual directions, each the mean of the aligned filters and
+        onsets (no interaural difference, as for a source straight above or below): a set measured in one plane
+        (the horizontal ring, a common SOFA layout) gets the two poles of that plane; a set on one side of a plane
+        through the head (no measurement below the horizon) gets the pole of the empty side, so every direction
+        falls in a triangle that does not pass through the head's centre. Fewer than 3 directions are refused."""
+        from sonicverse_core.errors import AssetError
+
+        d = self.directions
+        if len(d) < 3:
+            raise AssetError(f"HRTF set '{self.name}' has {len(d)} directions; at least 3 are needed")
+        _, sv, vt = np.linalg.svd(d, full_matrices=False)
+        if sv[-1] < 1e-3 * sv[0]:  # all in one plane through the centre
+            poles = np.stack([vt[-1], -vt[-1]])
+        else:
+            try:
+                eq = ConvexHull(d).equations  # outward normals n and offsets c: n.x + c = 0 on a facet
+            except Exception:  # noqa: BLE001 - refused with the hull below
+                return
+            if eq[:, 3].max() < -0.05:
+                return  # the centre is well inside: nothing to add
+            far = eq[np.argmax(eq[:, 3]), :3]  # the facet nearest the centre faces the empty side
+            poles = far[None] / np.linalg.norm(far)
+        mean_f = self.filters.mean(0, keepdims=True)
+        self.directions = np.concatenate([d, poles])
+        self.filters = np.concatenate([self.filters, np.repeat(mean_f, len(poles), 0)]).astype(np.float32)
+        self.onsets = np.concatenate([self.onsets, np.full((len(poles), 2), float(self.onsets.mean()))])
+
     def _exact_triangles(self, d: np.ndarray) -> np.ndarray:
         out = np.empty(len(d), np.int64)
         for i in range(0, len(d), 4096):
             chunk = d[i:i + 4096]
-            cand = np.argpartition(-(chunk @ self._centroid.T), 8, axis=1)[:, :8]
+            k = min(8, len(self._tri) - 1)  # a sparse set has few triangles
+            cand = np.argpartition(-(chunk @ self._centroid.T), k, axis=1)[:, :k + 1]
             w = np.einsum("mkij,mj->mki", self._inv[cand], chunk)
             ok = np.all(w >= -1e-9, axis=2)
             pick = np.where(ok.any(1), np.argmax(ok, axis=1), np.argmax(w.min(2), axis=1))

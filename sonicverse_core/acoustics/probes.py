@@ -232,34 +232,42 @@ def bake(scene, positions, config: BakeConfig = BakeConfig(), caster=None, cache
         path = cache_dir() / "bakes" / f"{_cache_key(scene, positions, config)}.json"
         if path.is_file():
             try:
-                return [_probe_from_json(p) for p in json.loads(path.read_text())]
-            except (ValueError, KeyError):
+                cached = json.loads(path.read_text())
+                if not isinstance(cached, list) or len(cached) != len(positions):
+                    raise ValueError(f"{type(cached).__name__} of {len(cached)} probes, expected {len(positions)}")
+                return [_probe_from_json(p) for p in cached]
+            except (ValueError, KeyError, TypeError) as exc:  # corrupt or foreign: baked again below
+                import logging
+
+                logging.getLogger(__name__).warning("bake cache %s is corrupt (%s): baked again", path, exc)
                 path.unlink(missing_ok=True)
     caster = caster or SceneRayCaster(scene)
-    probes = []
-    for i, p in enumerate(positions):
-        probes.append(bake_probe(caster, p, config))
-        if progress:
-            import sys
+    from sonicverse_core.progress import progress as bar
 
-            done = int(30 * (i + 1) / len(positions))
-            print(f"\rbaking probes [{'#' * done}{'.' * (30 - done)}] {i + 1}/{len(positions)}", end="",
-                  file=sys.stderr, flush=True)
-    if progress:
-        import sys
-
-        print(file=sys.stderr)
+    probes = [bake_probe(caster, p, config) for p in bar(positions, len(positions), "baking probes", progress)]
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps([p.to_json() for p in probes]))
-        tmp.replace(path)
+        from sonicverse_core.storage import write_text_atomic
+
+        write_text_atomic(path, json.dumps([p.to_json() for p in probes]))
     return probes
 
 
 def _probe_from_json(d: dict) -> Probe:
-    return Probe(np.array(d["position"]), np.array(d["rt60"]), np.array(d["edt"]), np.array(d["box_lo"]),
-                 np.array(d["box_hi"]), tuple(d["box_materials"]), d["enclosed"])
+    """A probe from its JSON form, checked: shapes, finite values, positive decay times, a box of positive size,
+    known materials (ValueError otherwise)."""
+    from sonicverse_core.scene.materials import MATERIAL_NAMES as known
+
+    arr = {k: np.asarray(d[k], np.float64) for k in ("position", "rt60", "edt", "box_lo", "box_hi")}
+    shapes = {"position": (3,), "rt60": (9,), "edt": (9,), "box_lo": (3,), "box_hi": (3,)}
+    for k, shape in shapes.items():
+        if arr[k].shape != shape or not np.isfinite(arr[k]).all():
+            raise ValueError(f"probe '{k}' is not {shape} finite numbers")
+    mats = tuple(d["box_materials"])
+    enclosed = float(d["enclosed"])
+    if np.any(arr["rt60"] <= 0) or np.any(arr["edt"] < 0) or np.any(arr["box_hi"] <= arr["box_lo"]) \
+            or len(mats) != 6 or any(m not in known for m in mats) or not 0 <= enclosed <= 1:
+        raise ValueError("probe values out of range (decay times, box, materials or enclosed fraction)")
+    return Probe(arr["position"], arr["rt60"], arr["edt"], arr["box_lo"], arr["box_hi"], mats, enclosed)
 
 
 def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rng=None) -> np.ndarray:

@@ -22,6 +22,12 @@ listeners are added):
 * Late reverb: a per-listener FDN (or partitioned convolution with synthesised tails) driven by the probes'
   RT60s, inverse-distance interpolated around the listener; the send falls with source distance (Barron).
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
+
+Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
+signal with a NaN is refused; a live block's non-finite samples become zeros and are counted in
+``stats["nonfinite_input"]``), gains are bounded, and should a listener's block still come out non-finite (its
+recursive states poisoned), that listener's filter, reflection and reverb states are cleared within the block and
+``stats["recoveries"]`` counts it.
 """
 from __future__ import annotations
 
@@ -41,6 +47,7 @@ from sonicverse_core.errors import ConfigError, PoseError
 from sonicverse_core.scene.materials import BANDS
 
 MID = slice(4, 7)  # 500 Hz - 2 kHz
+MAX_GAIN = 1e6  # +120 dB: a larger source gain would overflow the float32 signal path
 
 
 @dataclass(frozen=True)
@@ -140,8 +147,8 @@ class Source:
 
     @gain.setter
     def gain(self, g: float) -> None:
-        if not np.isfinite(g) or g < 0:
-            raise ConfigError(f"source gain must be finite and >= 0, got {g}")
+        if not np.isfinite(g) or not 0 <= g <= MAX_GAIN:
+            raise ConfigError(f"source gain must be within 0..{MAX_GAIN:g}, got {g}")
         self._r._gain[self.index] = g
 
     @property
@@ -157,13 +164,15 @@ class Source:
         self._r._fwd[self.index] = v / n
 
     def push(self, block: np.ndarray) -> None:
+        """The next block of a live source (a microphone): non-finite samples become zeros (counted in the
+        renderer's ``stats["nonfinite_input"]``), magnitudes are clipped to 1e6."""
         block = np.asarray(block, np.float32).ravel()
         if len(block) != self._r.cfg.block:
             raise ConfigError(f"a live block must have {self._r.cfg.block} frames, got {len(block)}")
-        self.pending = block
-
-    def restart(self) -> None:
-        self._r._cursor[self.index] = 0
+        if not np.isfinite(block).all():
+            self._r.stats["nonfinite_input"] += 1
+            block = np.nan_to_num(block, nan=0.0, posinf=0.0, neginf=0.0)
+        self.pending = np.clip(block, -MAX_GAIN, MAX_GAIN)
 
 
 @dataclass
@@ -214,6 +223,7 @@ class AcousticRenderer:
             self.occlusion = Occlusion(scene, cfg.occlusion_tolerance, cfg.occlusion_rays_per_block)
             self.subsystems.append("occlusion")
         self.stats = self.occlusion.stats if self.occlusion else {"occlusion_rays": 0, "occlusion_skipped": 0}
+        self.stats.update(nonfinite_input=0, recoveries=0)
         enclosed = [p for p in (probes or []) if p.enclosed > 0.5]
         self.probes = enclosed or None
         if self.probes:
@@ -443,6 +453,9 @@ class AcousticRenderer:
                 if self._late_on:
                     out += self._late(st, lis, st["dist"][:n], occ)
                 fresh[:] = False
+            if not np.isfinite(out).all():
+                self._recover(st)
+                out[:] = 0.0
             outs.append(self._limit(st, out))
         self.blocks += 1
         return outs
@@ -569,6 +582,21 @@ class AcousticRenderer:
                 st["fdn_rt"] = (lo, hi)
             return st["fdn"].process(mono) * lv
         return st["conv"].process(mono, w) * lv
+
+    def _recover(self, st: dict) -> None:
+        """A listener's block came out non-finite: clear every state that carries it into later blocks (filter
+        histories, reflection history, reverb network, limiter), and any non-finite source history."""
+        self.stats["recoveries"] += 1
+        for key in ("hist", "acc", "er_hist", "er_acc", "amb"):
+            if key in st:
+                st[key][:] = 0
+        for key in ("fdn", "conv"):
+            if key in st:
+                st[key].reset()
+        st["limit"], st["late_level"], st["late_key"] = 1.0, None, None
+        bad = ~np.isfinite(self._ring)
+        if bad.any():
+            self._ring[bad] = 0.0
 
     @staticmethod
     def _limit(st, out: np.ndarray) -> np.ndarray:

@@ -22,7 +22,6 @@ class FDNReverb:
         self.size = int(self.delays.max() + 1)
         self.buf = np.zeros((n, self.size))
         self.pos = 0
-        self.A = np.eye(n) - 2.0 / n * np.ones((n, n))
         self.cl = np.where(np.arange(n) % 2 == 0, 1.0, -1.0) / np.sqrt(n)
         self.cr = np.where((np.arange(n) // 2) % 2 == 0, 1.0, -1.0) / np.sqrt(n)
         self.zi = np.zeros(n)
@@ -55,6 +54,12 @@ class FDNReverb:
         # unit output energy for a unit impulse: each of the n lines carries ~ T fs / (13.8 m) of the injected energy
         # over its decay and the output mix sums the lines with weights 1/n
         self.norm = np.sqrt(13.8 * m * len(self.delays) / (rt_low * self.fs))
+
+    def reset(self) -> None:
+        """Silence the network (its state after a non-finite input: the renderer's recovery)."""
+        self.buf[:] = 0.0
+        self.zi[:] = 0.0
+        self.pos = 0
 
     def process(self, x: np.ndarray) -> np.ndarray:
         """x : (block,) mono send -> (2, block) float64 diffuse tail (compiled per-sample loop)."""
@@ -118,6 +123,11 @@ class ConvolutionReverb:
         self.t = 0
         self.prev_in = np.zeros(B)
         self.w = None
+
+    def reset(self) -> None:
+        """Forget the input history (the renderer's recovery from a non-finite value)."""
+        self.fdl[:] = 0
+        self.prev_in[:] = 0.0
 
     def process(self, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """x (block,) mono send; weights (n_probes,) summing to 1 -> (2, block)."""

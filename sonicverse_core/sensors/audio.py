@@ -1,8 +1,13 @@
 """What a robot hears: binaural audio rendered continuously across steps by the acoustic engine, a rolling
 window of it, its spectrogram, and the robot's own ego-noise (sim-to-real).
 
-Spectrogram as in SoundSpaces / SAVi: STFT with a 512-point FFT, hop 160 and a 400-sample Hann window (10 ms / 25 ms
-at 16 kHz) over the last ``window`` seconds, magnitude average-pooled (``pool`` bins x frames), then log1p.
+Spectrogram as in SoundSpaces / SAVi (``librosa.stft(x, n_fft=512, hop_length=160, win_length=400)``): a periodic
+400-sample Hann window (librosa's ``get_window("hann", 400, fftbins=True)``, 25 ms at 16 kHz), hop 160 (10 ms),
+512-point FFT, magnitude average-pooled (``pool`` bins x frames), then log1p. One difference, on purpose: librosa
+centres frames on the hop grid and pads the signal's two ends (reflect in SoundSpaces' librosa); a stream has no
+future samples, so our frames are whole windows of the last ``window`` seconds, the newest ending with the newest
+sample (librosa with ``center=False`` on that window). Each frame's magnitude equals librosa's for the same
+samples (tested against ``torch.stft``, which follows the same definition).
 """
 from __future__ import annotations
 
@@ -11,6 +16,11 @@ import numpy as np
 from sonicverse_core.errors import ConfigError
 
 N_FFT, HOP, WIN = 512, 160, 400
+
+
+def hann_periodic(n: int) -> np.ndarray:
+    """The periodic Hann window of length n (scipy/librosa ``fftbins=True``): 0.5 - 0.5 cos(2 pi k / n)."""
+    return (0.5 - 0.5 * np.cos(2 * np.pi * np.arange(n) / n)).astype(np.float32)
 
 
 class Spectrogram:
@@ -29,7 +39,7 @@ class Spectrogram:
         self.F, self.T = self.bins // pf, self.frames // pt
         # frames end-aligned: the last one ends with the newest sample
         self._idx = (n - WIN) % HOP + np.arange(WIN)[None, :] + HOP * np.arange(self.frames)[:, None]
-        self._win = np.hanning(WIN + 2)[1:-1].astype(np.float32)
+        self._win = hann_periodic(WIN)
 
     @property
     def shape(self) -> tuple[int, int, int]:

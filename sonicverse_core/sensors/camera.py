@@ -227,5 +227,27 @@ class RGBDCamera:
 
     def close(self) -> None:
         if self.renderer is not None:
-            self.renderer.delete()
+            release_offscreen(self.renderer)
             self.renderer = None
+
+
+def release_offscreen(renderer) -> None:
+    """Free a pyrender OffscreenRenderer's GL objects and destroy its own EGL context, leaving the EGL display
+    initialised. pyrender's ``delete()`` also calls eglTerminate on the display, which is shared by every context
+    of the process: closing one env (or one view) broke every other one."""
+    platform = getattr(renderer, "_platform", None)
+    if platform is None or not hasattr(platform, "_egl_display"):  # not EGL (or already released)
+        if platform is not None:
+            renderer.delete()
+        return
+    platform.make_current()
+    renderer._renderer.delete()
+    from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+
+    if platform._egl_display is not None and platform._egl_context is not None:
+        eglMakeCurrent(platform._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+        eglDestroyContext(platform._egl_display, platform._egl_context)
+        platform._egl_context = None
+    platform._egl_display = None  # the platform's __del__ would terminate the shared display otherwise
+    renderer._renderer = None
+    renderer._platform = None

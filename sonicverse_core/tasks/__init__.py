@@ -1,10 +1,14 @@
 """Embodied tasks as Gymnasium environments (``Sonicverse/AudioGoal-v0``, ``Sonicverse/AudioPointGoal-v0``,
 ``Sonicverse/SemanticAudioNav-v0``), episodes and metrics.
 
-Importing this package registers the environments; Gymnasium also finds them through the ``gymnasium.envs``
-entry point, so ``gymnasium.make("Sonicverse/AudioGoal-v0")`` works after ``import gymnasium`` alone.
+Importing this package registers the environments. In a fresh interpreter, name the module in the id and
+Gymnasium imports it first: ``gymnasium.make("sonicverse_core.tasks:Sonicverse/AudioGoal-v0")`` (Gymnasium 1.x does
+not load entry points, so ``gymnasium.make("Sonicverse/AudioGoal-v0")`` works only after ``import
+sonicverse_core.tasks``). The spec carries ``max_episode_steps`` = the task's ``max_steps`` (500).
 """
 from __future__ import annotations
+
+MAX_STEPS = 500  # TaskConfig.max_steps: the env truncates itself there too
 
 ENV_IDS = {"AudioGoal": "Sonicverse/AudioGoal-v0", "AudioPointGoal": "Sonicverse/AudioPointGoal-v0",
            "SemanticAudioNav": "Sonicverse/SemanticAudioNav-v0"}
@@ -15,7 +19,7 @@ def register_envs() -> None:
 
     for task, env_id in ENV_IDS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=f"sonicverse_core.tasks.nav:{task}Env", max_episode_steps=None,
+            gym.register(id=env_id, entry_point=f"sonicverse_core.tasks.nav:{task}Env", max_episode_steps=MAX_STEPS,
                          disable_env_checker=True)
 
 

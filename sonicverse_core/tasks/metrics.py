@@ -5,7 +5,9 @@
 * SNA (Chen et al. 2021, SAVi): S * n* / max(n*, n), n = actions taken (every step counts: collisions and turns in
   place included), n* = actions on the shortest path: the geodesic at top speed, ceil(l / (v_max * dt)).
 * Distance to goal at the end (geodesic, m) and SoftSPL: (1 - d_end / l) * l / max(l, p).
-Means come with a 95% confidence interval (Student t on the per-episode values).
+Every metric is reported as ``{"mean": m, "ci95": [low, high], "n": n}``: a Wilson score interval for success
+rates (exact-coverage-friendly at 0 or n successes, where a t-interval collapses to +-0) and a Student-t interval
+for continuous per-episode values.
 """
 from __future__ import annotations
 
@@ -40,15 +42,28 @@ def shortest_actions(shortest: float, max_speed: float, dt: float) -> int:
 
 
 def mean_ci95(values) -> dict:
-    """{'mean', 'ci95' (half-width), 'n'} of per-episode values."""
+    """{'mean', 'ci95': [low, high] (Student t), 'n'} of continuous per-episode values."""
     x = np.asarray(list(values), float)
     n = len(x)
     if n == 0:
-        return {"mean": float("nan"), "ci95": float("nan"), "n": 0}
+        return {"mean": None, "ci95": [None, None], "n": 0}
     m = float(x.mean())
     if n == 1:
-        return {"mean": m, "ci95": float("nan"), "n": 1}
+        return {"mean": m, "ci95": [None, None], "n": 1}
     from scipy import stats
 
     h = float(stats.t.ppf(0.975, n - 1) * x.std(ddof=1) / math.sqrt(n))
-    return {"mean": m, "ci95": h, "n": n}
+    return {"mean": m, "ci95": [m - h, m + h], "n": n}
+
+
+def rate_ci95(outcomes) -> dict:
+    """{'mean', 'ci95': [low, high] (Wilson score, z = 1.96), 'n'} of 0/1 per-episode outcomes."""
+    x = np.asarray(list(outcomes), float)
+    n = len(x)
+    if n == 0:
+        return {"mean": None, "ci95": [None, None], "n": 0}
+    p, z = float(x.mean()), 1.959963984540054
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z / den * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return {"mean": p, "ci95": [max(0.0, centre - half), min(1.0, centre + half)], "n": n}

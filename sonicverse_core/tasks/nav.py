@@ -334,7 +334,7 @@ class SonicverseNavEnv(gym.Env):
     def _info(self) -> dict:
         return {"episode_id": self.episode.episode_id, "distance_to_goal": self._prev_geo, "at_goal": self.at_goal(),
                 "steps": self.steps, "collisions": self.collisions, "path_length": self.path_length,
-                "success": False}
+                "success": False, "is_success": False}
 
     def step(self, action):
         if self.episode is None or self._done:
@@ -358,7 +358,7 @@ class SonicverseNavEnv(gym.Env):
         reward += c.success_reward * success - c.step_penalty - c.collision_penalty * w.bumped
         self._prev_geo = geo
         info = self._info()
-        info["success"] = success
+        info["success"] = info["is_success"] = success  # is_success: the key SB3 and others read
         if terminated or truncated:
             self._done = True
             info["metrics"] = self.metrics(success)
