@@ -229,3 +229,47 @@ def test_sofa_files_that_cannot_work_are_refused(tmp_path):
     (tmp_path / "junk.sofa").write_bytes(b"\x89HDF\r\n junk")
     with pytest.raises(AssetError, match="cannot read SOFA"):
         load_sofa(tmp_path / "junk.sofa")
+
+
+def test_the_callback_memory_does_not_grow_in_steady_state():
+    """tracemalloc over 1,500 callbacks after warm-up: what the callback allocates is freed within the block (no
+    growth), and the largest block's temporaries stay bounded."""
+    import tracemalloc
+
+    import sounddevice as sd
+
+    from app.audio_rt.config import AudioConfig, AudioScene, SourceSpec
+    from app.audio_rt.core import AudioCore, Shared
+    from app.audio_rt.engine import AudioEngine
+    from app.audio_rt.shared import SharedBlock
+
+    B = 256
+    srcs = [SourceSpec("sofa/0", (4.0, 3.0, 1.2), 0.3), SourceSpec("sink/1", (1.0, 4.0, 1.0), 0.3)]
+    eng = AudioEngine(AudioConfig(), AudioScene(SCENE, sources=srcs, robots=[(1.5, 1.0, 0.4, 0.0)],
+                                                head=(2.0, 2.5, 1.6, 0.0, 0.0)))
+    eng.sh = Shared(eng.layout, SharedBlock(eng.layout.size, private=True).buf, eng.n_listeners)
+    core = AudioCore(eng.cfg, eng.scene, eng.sh, eng.pose_layout, role="all")
+    ind, outd = np.zeros((B, 1), np.float32), np.zeros((B, 2), np.float32)
+    rng = np.random.default_rng(4)
+
+    def run(k0, n):
+        for k in range(k0, k0 + n):
+            if k % 17 == 0:  # the frame loop hands a new pose now and then: the listener walks and turns
+                eng.sh.poses.write(eng.pose_layout.frame(k * B / 48000, (2.0 + 0.001 * k, 2.5, 1.6, 0.2 * k, 0.0),
+                                                         robots=[(1.5, 1.0, 0.4, 0.0)],
+                                                         sources=[s.position for s in srcs], gains=[0.3, 0.3]))
+            ind[:, 0] = rng.normal(size=B) * 0.05
+            core.callback(ind, outd, B, None, sd.CallbackFlags(0))
+
+    run(0, 300)  # warm-up: JIT, first rays, caches
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        run(300, 1500)
+        after, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    print(f"tracemalloc: growth {after - before} B, peak {peak - before} B")
+    assert after - before < 64 * 1024, f"grew by {after - before} bytes over 1,500 callbacks"
+    assert peak - before < 4 * 1024 * 1024  # one block's temporaries
+    assert eng.telemetry()["callback_errors"] == 0

@@ -3,8 +3,11 @@
 The callback (:meth:`AudioCore.callback`) does, per block: copy the microphone into its ring; read the newest pose
 frame through the sequence lock and advance the interpolated poses; move the listeners, the sources, the mouth
 (the microphone's source) and the doors; render one block; write the user's block to the output and every
-listener's block to its ring; record its own duration. Everything it touches is allocated before the stream starts;
-an exception is caught, counted and written to the error slot, and the block plays silence.
+listener's block to its ring; record its own duration. Its state (rings, pose and output buffers, the renderer's
+per-source and per-listener arrays) is allocated before the stream starts; the renderer's block still makes
+short-lived NumPy temporaries (FFT outputs, per-band curves), about the same few hundred kB every block and freed
+within it: the callback's memory does not grow (tracemalloc, tests/test_poison.py). It is not allocation-free.
+An exception is caught, counted and written to the error slot, and the block plays silence.
 """
 from __future__ import annotations
 
@@ -96,12 +99,9 @@ def build_renderer(scene_setup: AudioScene, cfg: AudioConfig, scene=None, role: 
         scene = load_scene(scene_setup.spec)
     if scene is not None:
         if scene_setup.late_reverb or scene_setup.early_reflections:
-            from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions, \
-                enclosed_fraction
+            from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
 
-            positions = default_probe_positions(scene)
-            if np.any(enclosed_fraction(scene, positions) > 0.5):
-                probes = bake(scene, positions, BakeConfig(rays=scene_setup.bake_rays))
+            probes = scene_probes(scene, BakeConfig(rays=scene_setup.bake_rays))
     rc = RenderConfig(sample_rate=cfg.sample_rate, block=cfg.block, occlusion=scene_setup.occlusion,
                       early_reflections=scene_setup.early_reflections, late_reverb=scene_setup.late_reverb,
                       occlusion_rays_per_block=scene_setup.occlusion_budget)

@@ -88,10 +88,6 @@ class PlatformProbe:
         return out
 
 
-def loopback_client_name() -> str:
-    return f"sonicverse-{os.getpid()}"
-
-
 def random_sources(spec: str | None, n: int, seed: int = 0, gain: float = 0.05):
     """n sound-bank sources on random navigable points of the scene (a 6 m circle in free field)."""
     from app.audio_rt.config import SourceSpec

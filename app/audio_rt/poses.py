@@ -77,7 +77,10 @@ class PoseInterpolator:
         self.cur, self.start, self.target = np.zeros(n), np.zeros(n), np.zeros(n)
         self.frac, self.interval, self.last_t, self.started = 1.0, 1 / 90, None, False
 
-    def new_frame(self, v: np.ndarray) -> None:
+    def new_frame(self, v: np.ndarray, interval: float | None = None) -> None:
+        """A new target pose frame; the ramp towards it lasts the measured frame interval (smoothed), or
+        ``interval`` seconds when the caller knows it (the offline renderer of the frame clock). An entity that
+        moved more than ``teleport_m`` jumps instead of sweeping through the scene."""
         if not self.started:  # the first frame is taken as it is
             self.cur[:] = v
             self.start[:] = v
@@ -85,7 +88,9 @@ class PoseInterpolator:
             self.started, self.last_t = True, v[0]
             return
         dt = v[0] - self.last_t
-        if 0 < dt < 0.25:  # frame interval, smoothed; a stall or a clock reset is ignored
+        if interval is not None:
+            self.interval = float(interval)
+        elif 0 < dt < 0.25:  # frame interval, smoothed; a stall or a clock reset is ignored
             self.interval += 0.2 * (dt - self.interval)
         self.last_t = v[0]
         self.start[:] = self.cur

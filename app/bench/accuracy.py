@@ -253,13 +253,11 @@ def _blocks(quick: bool):
 
 
 def bench_accuracy(reference_rays: int = 1_000_000, quick: bool = False, plot: str | None = None) -> dict:
-    knobs = []
-    knobs.extend(_rays_and_bounces(reference_rays, quick))
-    knobs.append(_probes(quick))
-    knobs.append(_hrtf(quick))
-    knobs.append(_early(quick))
-    knobs.append(_reverb(quick))
-    knobs.append(_blocks(quick))
+    from sonicverse_core.progress import progress
+
+    steps = [lambda: _rays_and_bounces(reference_rays, quick), lambda: [_probes(quick)], lambda: [_hrtf(quick)],
+             lambda: [_early(quick)], lambda: [_reverb(quick)], lambda: [_blocks(quick)]]
+    knobs = [k for step in progress(steps, desc="accuracy knobs") for k in step()]
     for k in knobs:
         front = _pareto([(r["error"], r["time_s"]) for r in k["rows"]])
         for i, r in enumerate(k["rows"]):

@@ -49,14 +49,13 @@ def bench_rays(spec: str = "builtin:apartment", n_rays: int = 200_000, n_referen
 def _audio_scene(spec: str, n_sources: int, seed: int, cfg):
     """A renderer over ``spec`` with n sound-bank sources on random navigable points and one listener."""
     from assets_manifest import soundbank
-    from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions
+    from sonicverse_core.acoustics.probes import scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer
     from sonicverse_core.geometry.navgrid import NavGrid
     from sonicverse_core.scene.spec import load_scene
 
     scene = load_scene(spec)
-    probes = bake(scene, default_probe_positions(scene), BakeConfig()) if cfg.late_reverb or \
-        cfg.early_reflections else None
+    probes = scene_probes(scene) if cfg.late_reverb or cfg.early_reflections else None
     r = AcousticRenderer(scene, cfg, probes=probes)
     rng = np.random.default_rng(seed)
     grid = NavGrid(scene)
@@ -86,7 +85,9 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     block_s = block / sample_rate
     n_blocks = int(seconds / block_s)
     times = np.empty(n_blocks)
-    for i in range(-50, n_blocks):  # 50 warm-up blocks
+    from sonicverse_core.progress import progress
+
+    for i in progress(range(-50, n_blocks), desc="audio blocks"):  # 50 warm-up blocks (timed per block, below)
         t = (i + 50) * block_s
         pos = start + np.array([0.3 * np.sin(0.5 * t), 0.3 * np.cos(0.5 * t), 0.0])  # a slow walk...
         r.set_listener(lis, pos, 40.0 * t % 360.0)  # ...and a head turning at 40 deg/s

@@ -6,14 +6,13 @@ import json
 import numpy as np
 
 from app.cli import args as A
-from sonicverse_core.errors import ConfigError
 
 
 def cmd_render(a) -> int:
     import soundfile as sf
 
     from assets_manifest import soundbank
-    from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions, enclosed_fraction
+    from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
     from sonicverse_core.scene.spec import load_scene
 
@@ -22,11 +21,7 @@ def cmd_render(a) -> int:
     cfg = RenderConfig(sample_rate=a.sample_rate, block=a.block, output=a.output,
                        occlusion=not a.no_occlusion, late_reverb=not a.no_reverb)
     sig, sr = soundbank.load_sound(a.sound)
-    probes = None
-    if cfg.late_reverb:
-        positions = default_probe_positions(scene)
-        if np.any(enclosed_fraction(scene, positions) > 0.5):  # an open scene needs no probes and no bake
-            probes = bake(scene, positions, BakeConfig(rays=a.rays), progress=not a.json)
+    probes = scene_probes(scene, BakeConfig(rays=a.rays), progress=not a.json) if cfg.late_reverb else None
     r = AcousticRenderer(scene, cfg, probes=probes)
     r.add_source(sig, src, loop=True, sample_rate=sr)
     r.add_listener(lis[:3], lis[3] if len(lis) == 4 else 0.0)

@@ -10,16 +10,16 @@ def run_demo_extras(scene, grid, out, seconds: float = 4.0) -> list[str]:
     import soundfile as sf
 
     from assets_manifest import soundbank
-    from sonicverse_core.acoustics.probes import bake, default_probe_positions
+    from sonicverse_core.acoustics.probes import scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
 
-    probes = bake(scene, default_probe_positions(scene))
+    probes = scene_probes(scene)
     r = AcousticRenderer(scene, RenderConfig(), probes=probes)
     sources = []
     for cat in ("standing_tv", "sink", "toilet"):
         obj = next((o for o in scene.objects if o.category == cat), None)
         if obj is not None:
-            r.add_source(soundbank.sound(cat, 0), obj.position + np.array([0, 0, 0.8]), sample_rate=soundbank.SAMPLE_RATE)
+            r.add_source(soundbank.sound(cat, 0), obj.sound_position(), sample_rate=soundbank.SAMPLE_RATE)
             sources.append({"category": cat, "object": obj.name, "position": np.round(obj.position, 2).tolist()})
     living = next((room for room in scene.rooms if room.type == "living room"), scene.rooms[0])
     pos = grid.sample(np.random.default_rng(0), 1, room=living.name)[0]

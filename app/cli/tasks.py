@@ -17,8 +17,8 @@ def cmd_eval(a) -> int:
     if a.max_steps is not None:
         kw["max_steps"] = a.max_steps
 
-    def progress(i, row):
-        if not a.json:
+    def progress(i, row):  # a line per episode where no terminal shows the bar
+        if not a.json and not sys.stderr.isatty():
             print(f"episode {i}: {row['category']:<16} success {int(row['success'])} spl {row['spl']:.2f} "
                   f"sna {row['sna']:.2f} steps {row['steps']}", file=sys.stderr)
 

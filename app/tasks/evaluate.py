@@ -45,7 +45,9 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     env = make_env(task, split=split, sounds=sounds, **kw)
     rows = []
     try:
-        for i in range(episodes):
+        from sonicverse_core.progress import progress as bar
+
+        for i in bar(range(episodes), desc=f"{task} {agent}", enabled=progress is not None):
             s = episode_seed(seed, i)
             obs, info = env.reset(seed=s)
             ag = make_agent(agent, np.random.default_rng(s))

@@ -14,10 +14,14 @@ from collections import deque
 import numpy as np
 
 from app.audio_rt.config import AudioConfig, AudioScene, SourceSpec
-from app.audio_rt.poses import mouth, wrap180
+from assets_manifest import soundbank
+from app.audio_rt.poses import PoseInterpolator, PoseLayout, mouth
 from app.vr.transforms import head_pose
 
-SOUNDING = ("standing_tv", "sink", "toilet", "washer", "fireplace", "piano")
+# which objects sound in the VR app, first choice first: the sound bank's categories, those that sound on their own
+# (a TV, running water) before the rest
+_FIRST = ("standing_tv", "sink", "toilet", "shower", "bathtub")
+SOUNDING = _FIRST + tuple(c for c in soundbank.CATEGORIES if c not in _FIRST)
 
 
 def scene_sources(scene, n: int = 2) -> list[tuple[str, SourceSpec]]:
@@ -26,7 +30,7 @@ def scene_sources(scene, n: int = 2) -> list[tuple[str, SourceSpec]]:
     for cat in SOUNDING:
         obj = next((o for o in scene.objects if o.category == cat), None)
         if obj is not None and len(out) < n:
-            out.append((obj.name, SourceSpec(sound=f"{cat}/0", position=tuple(obj.position + [0, 0, 0.8]),
+            out.append((obj.name, SourceSpec(sound=f"{cat}/0", position=tuple(obj.sound_position()),
                                               gain=0.5)))
     return out
 
@@ -75,7 +79,7 @@ class EarLog:
 
 
 def source_positions(scene, sources) -> list:
-    return [tuple(scene.object(name).position + [0, 0, 0.8]) for name, _ in sources]
+    return [tuple(scene.object(name).sound_position()) for name, _ in sources]
 
 
 class _Ears:
@@ -103,27 +107,27 @@ class OfflineAudio(_Ears):
         self.voice = None if voice is None else np.asarray(voice, np.float32)  # at sample_rate
         self.voice_at = 0
         self.samples = 0  # rendered so far
-        self.prev = None
+        self.layout = PoseLayout(n_robots=len(robots))
+        self.interp = PoseInterpolator(self.layout)  # the real-time pipeline's, teleport rule included
         self.ears = [EarLog(sample_rate) for _ in self.r.listeners]
 
     def update(self, t: float, head: np.ndarray, robots: list, speaking: bool = True) -> None:
         """Render up to time ``t`` (s); head (4x4) and robots (x, y, z, yaw) are the poses at ``t``."""
-        hp = np.array(head_pose(head))
-        rb = np.array(robots, float).reshape(-1, 4)
-        prev = self.prev if self.prev is not None else (hp, rb)
+        L = self.layout
         end = int(round(t * self.sr))
-        pos = [np.array(p) for p in source_positions(self.scene, self.sources)]
-        for s, p in zip(self.r.sources, pos):
+        for s, p in zip(self.r.sources, source_positions(self.scene, self.sources)):
             s.position = p
         n_blocks = max(0, -(-(end - self.samples) // self.block))
-        for k in range(n_blocks):
-            a = (k + 1) / n_blocks
-            h = prev[0] + a * (hp - prev[0])
-            h[3] = prev[0][3] + a * wrap180(hp[3] - prev[0][3])
+        block_s = self.block / self.sr
+        self.interp.new_frame(L.frame(t, head_pose(head), robots=np.array(robots, float).reshape(-1, 4)),
+                              interval=max(n_blocks, 1) * block_s)
+        for _ in range(n_blocks):
+            v = self.interp.advance(block_s)
+            h = v[L.HEAD]
             self.r.set_listener(self.user, h[:3], h[3], h[4])
-            for lis, r0, r1 in zip(self.r.listeners[1:], prev[1], rb):
-                y = r0[3] + a * wrap180(r1[3] - r0[3])
-                self.r.set_listener(lis, r0[:3] + a * (r1[:3] - r0[:3]), y)
+            for k, lis in enumerate(self.r.listeners[1:]):
+                rb = v[L.ROBOTS.start + 4 * k: L.ROBOTS.start + 4 * k + 4]
+                self.r.set_listener(lis, rb[:3], rb[3])
             if self.mic is not None:
                 m, fwd = mouth(h)
                 self.mic.position, self.mic.forward = m, fwd
@@ -136,7 +140,6 @@ class OfflineAudio(_Ears):
             for log, out in zip(self.ears, self.r.render_block()):
                 log.add(out)
             self.samples += self.block
-        self.prev = (hp, rb)
 
     def close(self) -> list[str]:
         return []

@@ -1,8 +1,9 @@
 """Compiled per-sample kernels of the renderer (numba, cached on disk, GIL released).
 
-NumPy would do each of these with several full-size temporaries per block; compiled loops touch every sample once,
-allocate nothing and release the GIL, so the audio thread and the frame loop can run side by side. Every kernel
-has a NumPy twin in the tests that it must match.
+NumPy would do each of these with several full-size temporaries per block; compiled loops touch every sample once
+and release the GIL, so the audio thread and the frame loop can run side by side. Every kernel has a NumPy twin in
+the tests that it must match (tests/test_kernels.py, gather's in tests/test_engine.py; a kernel without one fails
+``test_every_kernel_has_a_twin``).
 """
 from __future__ import annotations
 
@@ -363,8 +364,12 @@ def segment_motion(pos, lis, seg, out):
     for i in range(pos.shape[0]):
         m = 0.0
         for a in range(3):
-            m = max(m, abs(pos[i, a] - seg[i, a]), abs(lis[a] - seg[i, 3 + a]))
-        out[i] = m if m == m else np.inf
+            u, v = abs(pos[i, a] - seg[i, a]), abs(lis[a] - seg[i, 3 + a])
+            if not (u == u and v == v):  # NaN: a segment never cast (max() would drop the NaN)
+                m = np.inf
+                break
+            m = max(m, u, v)
+        out[i] = m
 
 
 @njit(**_fast)

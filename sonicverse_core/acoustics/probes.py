@@ -307,6 +307,31 @@ def eyring_rt60(dims, alpha_surfaces: dict, air: bool = True) -> np.ndarray:
 
 
 
+def reverb_free(scene) -> str | None:
+    """Why this scene needs no reverb at all (no probes, no bake, no early reflections, no late reverb), or None:
+    every static surface absorbs everything in every band (an anechoic room)."""
+    from sonicverse_core.scene.materials import MATERIAL_NAMES, get_material
+
+    mats = {MATERIAL_NAMES[int(i)] for i in np.unique(scene.static_mesh().face_material)}
+    if all(min(get_material(m).absorption) >= 0.999 for m in mats):
+        return f"every surface absorbs everything ({', '.join(sorted(mats))})"
+    return None
+
+
+def scene_probes(scene, config: BakeConfig = BakeConfig(), positions=None, progress: bool = False,
+                 caster=None) -> list[Probe] | None:
+    """The one recipe that gives a scene its reverb probes: one per room at its navigable point nearest the centre
+    (or ``positions``), baked through the cache; None when the scene needs none (:func:`reverb_free`, or an open
+    scene: no probe position is enclosed). A renderer given None builds no early reflections and no late reverb,
+    and its ``subsystems`` say so."""
+    if reverb_free(scene) is not None:
+        return None
+    pos = default_probe_positions(scene) if positions is None else np.atleast_2d(np.asarray(positions, float))
+    if len(pos) == 0 or not np.any(enclosed_fraction(scene, pos, caster=caster) > 0.5):
+        return None
+    return bake(scene, pos, config, caster=caster, progress=progress)
+
+
 def enclosed_fraction(scene, positions, rays: int = 128, caster=None) -> np.ndarray:
     """Fraction of rays from each position that hit the static structure: near 0 in an open or anechoic scene,
     which needs no probes and no bake."""

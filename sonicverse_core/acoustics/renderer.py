@@ -419,7 +419,7 @@ class AcousticRenderer:
             return
         for s in self.sources:
             if s.attached_to is not None:
-                self._pos[s.index] = self.scene.object(s.attached_to).position + np.array([0, 0, 0.3])
+                self._pos[s.index] = self.scene.object(s.attached_to).sound_position()
         read_sources(self._bank, self._off[:n], self._len[:n], self._cursor[:n], self._loop[:n], self._gain[:n],
                      self._ring, w0, B)
         for i in np.flatnonzero(self._live[:n]):

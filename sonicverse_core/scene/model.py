@@ -92,6 +92,12 @@ class SceneObject:
         m.apply_transform(self.pose)
         return m
 
+    def sound_position(self) -> np.ndarray:
+        """(3,) where this object's sound comes from: the centre of its world bounds (a TV's screen, a sink's
+        basin, a cushion's middle), wherever it is carried. The one place that says so: the renderer, the envs and
+        the VR app all use it."""
+        return self.world_bounds().mean(axis=0)
+
     def world_bounds(self, pose: np.ndarray | None = None) -> np.ndarray:
         """(2, 3) axis-aligned bounds in world coordinates (at ``pose``, default the current one)."""
         pose = self.pose if pose is None else pose

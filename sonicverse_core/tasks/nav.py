@@ -112,9 +112,9 @@ class _Home:
         self.world = World(self.scene)
         self.probes = None
         if reverb:
-            from sonicverse_core.acoustics.probes import bake, default_probe_positions
+            from sonicverse_core.acoustics.probes import scene_probes
 
-            self.probes = bake(self.scene, default_probe_positions(self.scene))
+            self.probes = scene_probes(self.scene)
 
 
 class SonicverseNavEnv(gym.Env):

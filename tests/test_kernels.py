@@ -1,0 +1,266 @@
+"""Every compiled kernel of the renderer (sonicverse_core/acoustics/kernels.py) against a NumPy twin written from its
+docstring: the loops must compute what the vectorised formula says (gather's twin is in test_engine.py)."""
+import numpy as np
+import pytest
+
+from sonicverse_core.acoustics import kernels as K
+
+FS = 48000.0
+RNG = np.random.default_rng(11)
+
+
+def _log_gain(d, d0, D):
+    d = np.asarray(d, float)
+    return (1 / (np.maximum(d, d0) - d0 + 1) - 1 / (1 + D - d0)) / (1 - 1 / (1 + D - d0))
+
+
+def _distance_twin(d, mode, d0, D, near_k):
+    d = np.asarray(d, float)
+    if mode == 0:
+        g = _log_gain(d, d0, D)
+    elif mode == 1:
+        g = np.clip((D - np.maximum(d, d0)) / (D - d0), 0, 1)
+    else:
+        g = np.ones_like(d)
+    g = np.where(d < 1, g * (1 + (1 / np.maximum(d, 0.1) - 1) * near_k), g)
+    return np.where(d > D, 0.0, g)
+
+
+@pytest.mark.parametrize("mode", [0, 1, 2])
+def test_distance_gains(mode):
+    d = np.r_[0.0, 0.05, 0.3, 0.99, 1.0, 2.5, 10, 499, 501, RNG.uniform(0, 600, 50)]
+    out = np.empty_like(d)
+    K.distance_gains(d, mode, 1.0, 500.0, 1 / 3, out)
+    np.testing.assert_allclose(out, _distance_twin(d, mode, 1.0, 500.0, 1 / 3), rtol=1e-12, atol=1e-15)
+    assert K.distance_gain_1(3.0, mode, 1.0, 500.0, 0.0) == pytest.approx(_distance_twin(3.0, mode, 1.0, 500.0, 0))
+
+
+def test_read_sources():
+    n, B, H = 3, 64, 512
+    bank = RNG.normal(size=1000).astype(np.float32)
+    off, length = np.array([1, 200, 500]), np.array([150, 90, 400])
+    cursor = np.array([0, 60, 380])
+    loop = np.array([True, True, False])
+    gain = np.array([0.5, 2.0, 1.0])
+    ring = np.full((n, H), 7.0, np.float32)
+    K.read_sources(bank, off, length, cursor.copy(), loop, gain, ring, 100, B)
+    for i in range(n):
+        k = cursor[i] + np.arange(B)
+        if loop[i]:
+            ref = bank[off[i] + k % length[i]] * np.float32(gain[i])
+        else:
+            ref = np.where(k < length[i], bank[off[i] + np.minimum(k, length[i] - 1)], 0) * np.float32(gain[i])
+        np.testing.assert_allclose(ring[i, 100:100 + B], ref, rtol=1e-6)
+    assert np.all(ring[:, :100] == 7.0)  # nothing outside the block is touched
+
+
+def test_mix_spectra_and_accumulate():
+    m, E, F, n = 10, 2, 33, 4
+    H = (RNG.normal(size=(m, E, F)) + 1j * RNG.normal(size=(m, E, F))).astype(np.complex64)
+    idx = RNG.integers(0, m, (n, 3))
+    w = RNG.dirichlet(np.ones(3), n)
+    curve = RNG.uniform(0, 1, (n, F)).astype(np.float32)
+    spread = np.array([0.0, 0.3, 1.0, 0.0])
+    diffuse = np.abs(H).mean(0).astype(np.complex64)
+    out = np.empty((n, E, F), np.complex64)
+    K.mix_spectra(H, idx, w, curve, spread, diffuse, out)
+    ref = np.einsum("nk,nkef->nef", w, H[idx])
+    ref = np.where(spread[:, None, None] > 0, ref * (1 - spread[:, None, None]) + diffuse * spread[:, None, None], ref)
+    np.testing.assert_allclose(out, ref * curve[:, None, :], rtol=1e-4, atol=1e-5)
+
+    X = (RNG.normal(size=(n, E, F)) + 1j * RNG.normal(size=(n, E, F))).astype(np.complex64)
+    p_spec = out.copy()
+    acc_new, acc_old = np.empty((E, F), np.complex64), np.empty((E, F), np.complex64)
+    assert K.accumulate(X, out, p_spec, acc_new, acc_old) is False  # same filters: nothing changed
+    p_spec[2, 1, 5] += 1
+    assert K.accumulate(X, out, p_spec, acc_new, acc_old) is True
+    np.testing.assert_allclose(acc_new, (X * out).sum(0), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(acc_old, (X * p_spec).sum(0), rtol=1e-4, atol=1e-4)
+
+
+def test_accumulate_sh():
+    C, E, F = 9, 2, 65
+    A = (RNG.normal(size=(C, F)) + 1j * RNG.normal(size=(C, F))).astype(np.complex64)
+    filt = (RNG.normal(size=(C, E, F)) + 1j * RNG.normal(size=(C, E, F))).astype(np.complex64)
+    acc = np.empty((E, F), np.complex64)
+    K.accumulate_sh(A, filt, acc)
+    np.testing.assert_allclose(acc, np.einsum("cf,cef->ef", A, filt), rtol=1e-4, atol=1e-4)
+
+
+def test_fdn_process_is_a_householder_network():
+    N, B = 4, 200
+    delays = np.array([7, 11, 13, 17])
+    size = 18
+    b0, p = RNG.uniform(0.5, 0.9, N), RNG.uniform(-0.5, 0.5, N)
+    cl, cr = RNG.choice([-1, 1], N) / 2.0, RNG.choice([-1, 1], N) / 2.0
+    x = RNG.normal(size=B)
+    buf, z = np.zeros((N, size)), np.zeros(N)
+    out = np.empty((2, B))
+    pos = K.fdn_process(x, out, buf.copy(), 0, delays, b0, p, z.copy(), cl, cr, 0.7)
+    # twin: explicit matrix form, A = I - 2/N 1 1^T
+    A = np.eye(N) - 2.0 / N
+    rbuf, rz, ref = np.zeros((N, size)), np.zeros(N), np.zeros((2, B))
+    for t in range(B):
+        v = rbuf[np.arange(N), (t - delays) % size]
+        ref[:, t] = [cl @ v * 0.7, cr @ v * 0.7]
+        rz = b0 * v + p * rz
+        rbuf[:, t % size] = A @ rz + x[t] / np.sqrt(N)
+    np.testing.assert_allclose(out, ref, rtol=1e-10, atol=1e-12)
+    assert pos == B % size
+
+
+def test_limit():
+    out = np.array([[0.1, -0.5, np.nan, 3.0, 1e-35, -0.2], [0.2, np.inf, -4.0, 0.5, 0.3, 0.0]])
+    res = np.empty(out.shape, np.float32)
+    g = K.limit(out.copy(), res, 1.0, 0.05)
+    clean = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+    peak = np.abs(clean).max()
+    goal = min(0.99 / peak, 1.0 + 0.05)
+    ramp = 1.0 + (goal - 1.0) * np.minimum(1.0, (np.arange(6) + 1) / max(1, 6 // 4))
+    ref = np.clip(clean * ramp, -1, 1)
+    ref[np.abs(ref) < 1e-30] = 0.0
+    assert g == pytest.approx(goal)
+    np.testing.assert_allclose(res, ref.astype(np.float32), rtol=1e-6)
+    assert np.all(np.isfinite(res)) and np.abs(res).max() <= 1.0
+
+
+def test_direct_geometry():
+    n = 6
+    pos = RNG.uniform(-5, 5, (n, 3))
+    pos[0] = [1.0, 2.0, 1.5]  # at the listener
+    lis = np.array([1.0, 2.0, 1.5])
+    yaw = np.radians(30)
+    R = np.array([[np.cos(yaw), np.sin(yaw), 0], [-np.sin(yaw), np.cos(yaw), 0], [0, 0, 1.0]])
+    fwd = RNG.normal(size=(n, 3))
+    fwd /= np.linalg.norm(fwd, axis=1, keepdims=True)
+    alpha, sharp = RNG.uniform(0, 1, n), RNG.uniform(1, 3, n)
+    alpha[1] = 0.0
+    occ = RNG.uniform(0, 1, (n, 9))
+    air = np.array([.0006, .0006, .0007, .0008, .0010, .0015, .0026, .0060, .0207])
+    dirs, dist, gain, amp, delay = np.empty((n, 3)), np.empty(n), np.empty(n), np.empty((n, 9), np.float32), \
+        np.empty(n)
+    K.direct_geometry(pos, lis, R, fwd, alpha, sharp, occ, air, 0, 1.0, 500.0, 1 / 3, 343.0, dirs, dist, gain, amp,
+                      delay)
+    v = pos - lis
+    d = np.linalg.norm(v, axis=1)
+    u = np.where(d[:, None] > 1e-6, (v @ R.T) / np.maximum(d, 1e-300)[:, None], [1.0, 0, 0])
+    cos_t = np.where(d > 1e-6, -np.einsum("ij,ij->i", fwd, v) / np.maximum(d, 1e-300), 1.0)
+    g = _distance_twin(d, 0, 1.0, 500.0, 1 / 3) * np.where(alpha > 0, np.abs(1 - alpha + alpha * cos_t) ** sharp, 1)
+    np.testing.assert_allclose(dist, d, rtol=1e-12)
+    np.testing.assert_allclose(dirs, u, atol=1e-12)
+    np.testing.assert_allclose(gain, g, rtol=1e-12)
+    np.testing.assert_allclose(amp, np.exp(-0.5 * air[None] * d[:, None]) * occ, rtol=1e-6)
+    np.testing.assert_allclose(delay, d / 343.0, rtol=1e-12)
+
+
+def test_segment_motion():
+    pos, lis = RNG.normal(size=(4, 3)), RNG.normal(size=3)
+    seg = np.c_[pos + RNG.normal(size=(4, 3)) * 0.1, np.tile(lis, (4, 1))]
+    seg[3] = np.nan  # never cast
+    out = np.empty(4)
+    K.segment_motion(pos, lis, seg, out)
+    ref = np.max(np.abs(np.c_[pos, np.tile(lis, (4, 1))] - seg), axis=1)
+    ref[3] = np.inf
+    np.testing.assert_allclose(out, ref)
+
+
+def test_late_send():
+    n, B, H = 3, 32, 128
+    ring = RNG.normal(size=(n, H)).astype(np.float32)
+    dist = np.array([1.0, 4.0, 9.0])
+    occ = RNG.uniform(0, 1, (n, 9))
+    p_send = np.array([0.2, 0.0, 0.7])
+    fresh = np.array([False, True, False])
+    out = np.empty(B, np.float32)
+    K.late_send(ring, 40, dist, occ, 0.6, p_send.copy(), fresh, out)
+    s = 10 ** (-0.174 * dist / 0.6 / 20) * np.sqrt(occ[:, 4:7].mean(1))
+    s0 = np.where(fresh, s, p_send)
+    ramp = s0[:, None] + (s - s0)[:, None] * (np.arange(B) + 1) / B
+    np.testing.assert_allclose(out, (ring[:, 40:40 + B] * ramp).sum(0), rtol=1e-5, atol=1e-6)
+
+
+def test_image_taps_and_encode_taps():
+    from sonicverse_core.acoustics.early import lattice
+
+    q, m, _ = lattice(1)
+    Kn = len(q)
+    lo, hi = np.array([0.0, 0, 0]), np.array([6.0, 5, 3])
+    src = np.array([[1.0, 1, 1.2], [4.0, 2, 1.0], [20.0, 2, 1.0]])  # the last is outside the box: no images
+    lis = np.array([3.0, 2.5, 1.6])
+    R = np.eye(3)
+    amp = RNG.uniform(0.3, 0.9, Kn)
+    occ = np.array([1.0, 0.5, 1.0])
+    delay, gain, Y = np.empty((3, Kn)), np.empty((3, Kn)), np.empty((3, Kn, 9))
+    K.image_taps(src, lo, hi, q, m, amp, lis, R, 0, 1.0, 500.0, 0.0, occ, 0.001, 343.0, delay, gain, Y)
+    L = hi - lo
+    img = (1 - 2 * q[None]) * (src[:2, None] - lo) + 2 * m[None] * L + lo - lis  # (2, K, 3)
+    d = np.linalg.norm(img, axis=-1)
+    g = _distance_twin(d, 0, 1.0, 500.0, 0.0) * amp[None] * occ[:2, None]
+    np.testing.assert_allclose(gain[:2], np.where(g >= 1e-4, g, 0), rtol=1e-12)
+    np.testing.assert_allclose(delay[:2], d / 343.0 + 0.001, rtol=1e-12)
+    u = img / d[..., None]
+    x, y, z = u[..., 0], u[..., 1], u[..., 2]
+    s3, s15 = np.sqrt(3), np.sqrt(15)
+    Yref = np.stack([np.ones_like(x), s3 * y, s3 * z, s3 * x, s15 * x * y, s15 * y * z,
+                     np.sqrt(5) / 2 * (3 * z * z - 1), s15 * x * z, s15 / 2 * (x * x - y * y)], -1)
+    np.testing.assert_allclose(Y[:2], Yref, atol=1e-12)
+    assert np.all(gain[2] == 0) and np.all(Y[2] == 0)
+
+    # encode_taps: amb[c, t] = sum_ik tap_ik(t) (Y_old + (Y_new - Y_old) ramp)
+    B, Hn = 64, 4096
+    ring = RNG.normal(size=(3, Hn)).astype(np.float32)
+    d_new = delay + RNG.uniform(-1e-5, 1e-5, delay.shape)
+    g_new = gain * 0.9
+    Y_new = Y * 0.95
+    ramp = ((np.arange(B) + 1) / B).astype(np.float32)
+    amb = np.empty((9, B), np.float32)
+    K.encode_taps(ring, 100, delay, d_new, FS, gain, g_new, Y, Y_new, ramp, amb)
+    t = np.arange(B)
+    r = (t + 1) / B
+    ref = np.zeros((9, B))
+    for i in range(3):
+        for k in range(Kn):
+            if gain[i, k] == 0 and g_new[i, k] == 0:
+                continue
+            pos = 100 + t - (delay[i, k] + (d_new[i, k] - delay[i, k]) * r) * FS
+            j = np.floor(pos).astype(int)
+            fr = pos - j
+            tap = (ring[i, j % Hn] * (1 - fr) + ring[i, (j + 1) % Hn] * fr) * (gain[i, k] + (g_new[i, k] - gain[i, k])
+                                                                              * r)
+            ref += tap[None] * (Y[i, k][:, None] + (Y_new[i, k] - Y[i, k])[:, None] * r[None])
+    np.testing.assert_allclose(amb, ref, rtol=1e-3, atol=2e-4)
+
+
+def test_barycentric_matches_an_exhaustive_search():
+    from assets_manifest.hrtf import kemar
+    from sonicverse_core.acoustics.hrtf import HrtfInterpolator
+
+    h = HrtfInterpolator(kemar(), 48000, taps=64)
+    d = RNG.normal(size=(300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    grid, step = h._grid()
+    idx, w = K.barycentric(d, grid, step, h._inv, h._tri)
+    # twin: the triangle whose smallest barycentric weight is largest, over all triangles
+    wa = np.einsum("tij,mj->mti", h._inv, d)
+    best = np.argmax(wa.min(2), axis=1)
+    ref_w = np.maximum(wa[np.arange(len(d)), best], 0)
+    ref_w /= ref_w.sum(1, keepdims=True)
+    same = np.all(np.sort(idx, 1) == np.sort(h._tri[best], 1), axis=1)
+    assert same.mean() > 0.99  # a direction on an edge may pick either neighbour
+    np.testing.assert_allclose(np.einsum("mk,mkj->mj", w[same], h.directions[idx[same]]) /
+                               np.linalg.norm(np.einsum("mk,mkj->mj", w[same], h.directions[idx[same]]), axis=1,
+                                              keepdims=True), d[same], atol=0.02)
+    order = np.argsort(idx[same], 1)
+    np.testing.assert_allclose(np.take_along_axis(w[same], order, 1),
+                               np.take_along_axis(ref_w[same], np.argsort(h._tri[best][same], 1), 1), atol=1e-9)
+
+
+def test_every_kernel_has_a_twin():
+    """A kernel added without a twin fails here."""
+    import inspect
+
+    kernels = {n for n, f in vars(K).items() if hasattr(f, "py_func") and not n.startswith("_")}
+    here = open(__file__).read() + open(__file__.replace("test_kernels.py", "test_engine.py")).read()
+    missing = sorted(n for n in kernels if f"K.{n}(" not in here and f"import {n}" not in here)
+    assert not missing, missing
+    assert inspect.getsource(K).count("@njit") == len(kernels) + 1  # + the private _tap (inside gather's twin)
