@@ -165,18 +165,28 @@ def test_segment_motion():
 
 
 def test_late_send():
-    n, B, H = 3, 32, 128
+    n, B, H = 3, 32, 4096
     ring = RNG.normal(size=(n, H)).astype(np.float32)
     dist = np.array([1.0, 4.0, 9.0])
     occ = RNG.uniform(0, 1, (n, 9))
     p_send = np.array([0.2, 0.0, 0.7])
+    D = np.round((dist / 343.0 + 0.012) * FS).astype(np.int64)
+    p_delay = D + np.array([0, 5, 40])  # the third source moved (a teleport): its delay crossfades
     fresh = np.array([False, True, False])
     out = np.empty(B, np.float32)
-    K.late_send(ring, 40, dist, occ, 0.6, p_send.copy(), fresh, out)
-    s = 10 ** (-0.174 * dist / 0.6 / 20) * np.sqrt(occ[:, 4:7].mean(1))
+    pd = p_delay.copy()
+    K.late_send(ring, 40, dist, occ, 0.6, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012)
+    s = 10 ** (-0.174 * dist / 0.6 / 20 - 3 * 0.012 / 0.6) * np.sqrt(occ[:, 4:7].mean(1))
     s0 = np.where(fresh, s, p_send)
-    ramp = s0[:, None] + (s - s0)[:, None] * (np.arange(B) + 1) / B
-    np.testing.assert_allclose(out, (ring[:, 40:40 + B] * ramp).sum(0), rtol=1e-5, atol=1e-6)
+    r = (np.arange(B) + 1) / B
+    ramp = s0[:, None] + (s - s0)[:, None] * r
+    D0 = np.where(fresh, D, p_delay)
+    rows = np.arange(n)[:, None]
+    new_ = ring[rows, (40 + np.arange(B)[None] - D[:, None]) % H]  # delayed: wraps the ring
+    old_ = ring[rows, (40 + np.arange(B)[None] - D0[:, None]) % H]
+    src = np.where((D0 == D)[:, None], new_, old_ * (1 - r) + new_ * r)
+    np.testing.assert_allclose(out, (src * ramp).sum(0), rtol=1e-5, atol=1e-6)
+    assert np.array_equal(pd, D)
 
 
 def test_image_taps_and_encode_taps():
@@ -253,6 +263,15 @@ def test_barycentric_matches_an_exhaustive_search():
     order = np.argsort(idx[same], 1)
     np.testing.assert_allclose(np.take_along_axis(w[same], order, 1),
                                np.take_along_axis(ref_w[same], np.argsort(h._tri[best][same], 1), 1), atol=1e-9)
+
+
+def test_fdl_mac():
+    P, F = 7, 17
+    fdl = (RNG.normal(size=(P, F)) + 1j * RNG.normal(size=(P, F))).astype(np.complex64)
+    H = (RNG.normal(size=(2 * P, 2, F)) + 1j * RNG.normal(size=(2 * P, 2, F))).astype(np.complex64)
+    out = np.empty((2, F), np.complex64)
+    K.fdl_mac(fdl, H, 3, out)
+    np.testing.assert_allclose(out, np.einsum("pf,pef->ef", fdl, H[3:3 + P]), rtol=1e-4, atol=1e-4)
 
 
 def test_every_kernel_has_a_twin():

@@ -384,25 +384,38 @@ def accumulate_sh(A, filters, acc):
 
 
 @njit(**_opts)
-def late_send(ring, w0, dist, occ, rt_low, p_send, fresh, out):
-    """Mono send to the late reverb from this block's dry samples ring[:, w0:w0+B]: per source
-    10^(-0.174 r / T / 20) (Barron & Lee: the late level falls with distance) x sqrt(mid-band occlusion
-    transmission) (a source behind walls excites the coupled space), ramped from p_send, which is updated."""
+def late_send(ring, w0, dist, occ, rt_low, p_send, p_delay, fresh, out, fs, c_sound, t_mix):
+    """Mono send to the late reverb: per source, its dry samples delayed by its travel time plus the mixing time
+    (ring[i, w0 + t - D], D = round((dist / c + t_mix) fs): the tail starts after the direct sound and the early
+    reflections; when D changes, the old and the new delay are crossfaded across the block, so a teleport sends no
+    step into the reverb), scaled by 10^(-0.174 r / T / 20) (Barron & Lee: the late level falls with distance) x
+    10^(-3 t_mix / T) (the decay before the tail starts) x sqrt(mid-band occlusion transmission) (a source behind
+    walls excites the coupled space), ramped from p_send. p_send and p_delay (int64) are updated."""
     B = len(out)
+    H = ring.shape[1]
     out[:] = 0.0
     T = max(rt_low, 0.05)
     for i in range(len(dist)):
         o = 0.0
         for b in range(4, 7):
             o += occ[i, b]
-        s = 10.0 ** (-0.174 * dist[i] / T / 20.0) * np.sqrt(max(o / 3.0, 0.0))
+        s = 10.0 ** (-0.174 * dist[i] / T / 20.0 - 3.0 * t_mix / T) * np.sqrt(max(o / 3.0, 0.0))
+        D = np.int64((dist[i] / c_sound + t_mix) * fs + 0.5)
         s0 = s if fresh[i] else p_send[i]
+        D0 = D if fresh[i] else p_delay[i]
         p_send[i] = s
+        p_delay[i] = D
         if s == 0.0 and s0 == 0.0:
             continue
         ds = (s - s0) / B
-        for t in range(B):
-            out[t] += ring[i, w0 + t] * np.float32(s0 + ds * (t + 1))
+        if D0 == D:
+            for t in range(B):
+                out[t] += ring[i, (w0 + t - D) % H] * np.float32(s0 + ds * (t + 1))
+        else:
+            for t in range(B):
+                r = (t + 1) / B
+                v = ring[i, (w0 + t - D0) % H] * (1.0 - r) + ring[i, (w0 + t - D) % H] * r
+                out[t] += v * np.float32(s0 + ds * (t + 1))
 
 
 @njit(**_opts)
@@ -410,3 +423,17 @@ def distance_gains(d, mode, d0, D, near_k, out):
     """distance_gain_1 over an array."""
     for i in range(len(d)):
         out[i] = distance_gain_1(d[i], mode, d0, D, near_k)
+
+
+@njit(**_fast)
+def fdl_mac(fdl, H, off, out):
+    """Partitioned convolution's frequency-domain multiply-accumulate: Y[e, f] = sum_p fdl[p, f] H[off + p, e, f]
+    (fdl (P, F) the input spectra, newest last in the circular order that ``off`` selects; H (2P, E, F) the tail's
+    partitions, doubled so that no index wraps). The inverse FFT is the caller's; out (E, F) is overwritten."""
+    P, F = fdl.shape
+    E = out.shape[0]
+    out[:] = 0
+    for p in range(P):
+        for e in range(E):
+            for f in range(F):
+                out[e, f] += fdl[p, f] * H[off + p, e, f]

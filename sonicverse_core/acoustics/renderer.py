@@ -19,8 +19,11 @@ listeners are added):
 * Early reflections: image sources (order 1 or 2) of the proxy box of the probe nearest the listener, from the
   actual source and listener positions, each a ramped fractional-delay tap encoded in second-order ambisonics in
   the head frame and decoded binaurally by least-squares spherical-harmonic HRTF filters.
-* Late reverb: a per-listener FDN (or partitioned convolution with synthesised tails) driven by the probes'
-  RT60s, inverse-distance interpolated around the listener; the send falls with source distance (Barron).
+* Late reverb: per listener, partitioned convolution with a tail synthesised per probe (octave-band noise decaying
+  at the probe's RT60 in each band, coloured by the HRTF set's diffuse field and given its interaural coherence per
+  band; no discrete echoes at the onset), or a cheaper FDN; the probes' outputs are mixed by inverse-distance
+  weights around the listener. Each source's send is delayed by its travel time plus the mixing time (sqrt(V) ms,
+  Polack), so the tail starts after the direct sound and the early reflections, and falls with distance (Barron).
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
@@ -47,6 +50,7 @@ from sonicverse_core.errors import ConfigError, PoseError
 from sonicverse_core.scene.materials import BANDS
 
 MID = slice(4, 7)  # 500 Hz - 2 kHz
+MAX_MIXING_TIME = 0.08  # s: the late tail starts at most this long after the direct sound
 MAX_GAIN = 1e6  # +120 dB: a larger source gain would overflow the float32 signal path
 
 
@@ -62,7 +66,7 @@ class RenderConfig:
     early_reflections: bool = True
     er_order: int = 1  # image-source order (1: 6 images per source, 2: 24)
     late_reverb: bool = True
-    reverb: str = "fdn"  # fdn | convolution
+    reverb: str = "convolution"  # convolution (synthesised binaural tails, exact per band) | fdn (cheaper)
     rolloff: str = "log"  # log | linear | none
     min_distance: float = 1.0
     max_distance: float = 500.0
@@ -262,6 +266,8 @@ class AcousticRenderer:
             self._probe_vol = np.array([p.volume for p in self.probes])
             self.subsystems.append("late_reverb")
         max_delay = cfg.max_distance / SPEED_OF_SOUND + 0.01 + (self.hrtf.onsets.max() if self.hrtf else 0)
+        if self._late_on:
+            max_delay += MAX_MIXING_TIME  # the late send's pre-delay
         if self._er:
             max_delay += 3 * cfg.er_order * float(np.max([np.max(p.box_hi - p.box_lo) for p in self.probes])) \
                 / SPEED_OF_SOUND
@@ -357,7 +363,8 @@ class AcousticRenderer:
             else:
                 from sonicverse_core.acoustics.reverb import ConvolutionReverb
 
-                st["conv"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._probe_rt)
+                st["conv"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._probe_rt,
+                                               **self._tail_colour())
             st["late_level"] = None
         self._state.append(st)
         for src in exclude:
@@ -399,6 +406,7 @@ class AcousticRenderer:
             grow("er_Y_new", (cap, K, (2 + 1) ** 2), np.float64)
             st["amb"] = np.zeros(((2 + 1) ** 2, self.cfg.block), np.float32)
         grow("send", (cap,), np.float64)
+        grow("send_delay", (cap,), np.int64)
 
     @staticmethod
     def set_listener(lis: Listener, position, yaw, pitch=None) -> None:
@@ -512,6 +520,20 @@ class AcousticRenderer:
             self._diffuse = np.sqrt(np.mean(np.abs(H) ** 2, axis=0)).astype(np.complex64)
         return self._diffuse
 
+    def _tail_colour(self) -> dict:
+        """How the synthesised tails sound at the ears: binaural output takes the HRTF set's diffuse-field gains
+        and interaural coherence per band; mono output the same tail in both channels; stereo two independent
+        tails. Computed once per renderer."""
+        if getattr(self, "_colour", None) is None:
+            if self.hrtf is not None:
+                from sonicverse_core.acoustics.reverb import diffuse_field
+
+                g, rho = diffuse_field(self.hrtf)
+                self._colour = {"gains": g, "coherence": rho}
+            else:
+                self._colour = {"coherence": np.ones(len(BANDS)) if self.cfg.output == "mono" else None}
+        return self._colour
+
     def _nearest_probe(self, st, p: np.ndarray) -> int:
         """The probe for the listener's early reflections: the nearest one in the listener's room (the nearest
         overall where the room is unknown or has none); cached per listener while it stays within 5 cm."""
@@ -560,18 +582,22 @@ class AcousticRenderer:
         key = st.get("late_key")
         if key is None or np.max(np.abs(key - lis.position)) > 0.01:  # probe interpolation, per centimetre moved
             w = 1 / np.maximum(np.linalg.norm(self._probe_pos - lis.position, axis=1), 0.1) ** 2
+            if len(w) > 2:  # the two nearest probes: each one mixed in costs a convolution per block
+                w[np.argsort(w)[:-2]] = 0.0
             w /= w.sum()
             rt = w @ self._probe_rt
             vol = float(w @ self._probe_vol)
             lo, hi = float(np.mean(rt[3:6])), float(rt[7])  # 250 Hz-1 kHz and 4 kHz: the FDN's two fit points
             # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
             level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
-            st["late_key"], st["late_params"] = lis.position.copy(), (w, lo, hi, level)
-        w, lo, hi, level = st["late_params"]
+            t_mix = float(np.clip(np.sqrt(max(vol, 0.0)) / 1000.0, 0.005, MAX_MIXING_TIME))  # Polack: sqrt(V) ms
+            st["late_key"], st["late_params"] = lis.position.copy(), (w, lo, hi, level, t_mix)
+        w, lo, hi, level, t_mix = st["late_params"]
         # Barron & Lee 1988: the late level falls with source distance; a source behind walls excites the
         # coupled space: the send keeps the square root of the direct path's mid-band transmission
         mono = np.empty(B, np.float32)
-        late_send(self._ring, (self.write - B) % self.hist, dist, occ, lo, st["send"][:n], st["fresh"][:n], mono)
+        late_send(self._ring, (self.write - B) % self.hist, dist, occ, lo, st["send"][:n], st["send_delay"][:n],
+                  st["fresh"][:n], mono, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
         p_level = st["late_level"] if st["late_level"] is not None else level
         lv = p_level + (level - p_level) * self._ramp64
         st["late_level"] = level

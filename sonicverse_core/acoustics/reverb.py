@@ -71,9 +71,41 @@ class FDNReverb:
         return out
 
 
-def synth_tail(rt60: np.ndarray, sample_rate: int, seconds: float | None = None, seed: int = 0) -> np.ndarray:
-    """A two-channel (decorrelated) late-reverb impulse response: octave-band noise per band of ``BANDS`` decaying
-    at that band's RT60, normalised so that a flat RT60 gives unit energy per channel. (2, n) float64."""
+def diffuse_field(hrtf, sample_rate: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per band of ``BANDS``, for an :class:`~sonicverse_core.acoustics.hrtf.HrtfInterpolator`: the diffuse-field
+    amplitude gain of each ear (2, 9) (the power average over all measured directions, on the same scale as the
+    direct path's filters) and the diffuse-field interaural coherence (9,)
+    |sum_dirs H_L H_R*| / sqrt(sum |H_L|^2 sum |H_R|^2), averaged over the band's bins, with the interaural delays
+    (the filters' onsets) included: near 1 at low frequencies, falling towards 0 above about 1 kHz."""
+    from sonicverse_core.scene.materials import BANDS
+
+    fs = hrtf.sample_rate if sample_rate is None else sample_rate
+    n = 1 << int(np.ceil(np.log2(max(4096, 2 * hrtf.taps))))
+    f = np.fft.rfftfreq(n, 1 / fs)
+    H = np.fft.rfft(hrtf.filters.astype(np.float64), n, axis=-1)  # (dirs, 2, F)
+    H = H * np.exp(-2j * np.pi * f[None, None, :] * hrtf.onsets[:, :, None])
+    power = np.mean(np.abs(H) ** 2, axis=0)  # (2, F)
+    cross = np.abs(np.sum(H[:, 0] * np.conj(H[:, 1]), axis=0))
+    coh = cross / np.sqrt(np.maximum(np.sum(np.abs(H[:, 0]) ** 2, 0) * np.sum(np.abs(H[:, 1]) ** 2, 0), 1e-300))
+    gains, coherence = np.ones((2, len(BANDS))), np.ones(len(BANDS))
+    for b, fc in enumerate(BANDS):
+        sel = (f >= fc / np.sqrt(2)) & (f < fc * np.sqrt(2))
+        if sel.any():
+            gains[:, b] = np.sqrt(power[:, sel].mean(axis=1))
+            coherence[b] = float(np.clip(coh[sel].mean(), 0.0, 1.0))
+        elif b:  # a band above the Nyquist frequency: as the one below
+            gains[:, b], coherence[b] = gains[:, b - 1], coherence[b - 1]
+    return gains, coherence
+
+
+def synth_tail(rt60: np.ndarray, sample_rate: int, seconds: float | None = None, seed: int = 0,
+               gains: np.ndarray | None = None, coherence: np.ndarray | None = None) -> np.ndarray:
+    """A two-channel late-reverb impulse response: octave-band noise per band of ``BANDS`` decaying at that band's
+    RT60, normalised so that a flat RT60 and unit gains give unit energy per channel. (2, n) float64.
+
+    gains (2, 9): each ear's amplitude per band (a binaural set's diffuse-field colouring; default 1);
+    coherence (9,): the interaural coherence per band (default 0: two independent tails; 1: the same tail in both
+    channels). Both channels carry the same energy whenever ``gains`` is the same for both."""
     from scipy.signal import butter, sosfilt
 
     from sonicverse_core.scene.materials import BANDS
@@ -83,6 +115,8 @@ def synth_tail(rt60: np.ndarray, sample_rate: int, seconds: float | None = None,
     n = int(min(T, 8.0) * sample_rate) + 1
     rng = np.random.default_rng(seed)
     noise = rng.normal(size=(2, n))
+    g = np.ones((2, len(BANDS))) if gains is None else np.asarray(gains, float)
+    rho = np.zeros(len(BANDS)) if coherence is None else np.clip(np.asarray(coherence, float), 0.0, 1.0)
     t = np.arange(n) / sample_rate
     out = np.zeros((2, n))
     edges = np.r_[BANDS / np.sqrt(2), BANDS[-1] * np.sqrt(2)]
@@ -97,21 +131,27 @@ def synth_tail(rt60: np.ndarray, sample_rate: int, seconds: float | None = None,
             sos = butter(4, lo, "highpass", output="sos")
         else:
             sos = butter(4, [lo, hi], "bandpass", output="sos")
-        out += sosfilt(sos, noise, axis=-1) * np.exp(-6.9078 * t / rt[b])
+        x = sosfilt(sos, noise, axis=-1) * np.exp(-6.9078 * t / rt[b])
+        a, c = np.sqrt((1 + rho[b]) / 2), np.sqrt((1 - rho[b]) / 2)  # mix to the band's coherence
+        out[0] += g[0, b] * (a * x[0] + c * x[1])
+        out[1] += g[1, b] * (a * x[0] - c * x[1])
     mid = float(np.mean(rt[4:7]))
     return out * np.sqrt(13.8155 / (mid * sample_rate))
 
 
 class ConvolutionReverb:
     """Uniformly partitioned overlap-save convolution (partitions of one block) with a synthesised tail per probe;
-    the outputs of the two probes nearest the listener are mixed with ramped weights. Exact per-band decay, more
-    cost than the FDN: the accuracy bench compares the two."""
+    the outputs of the probes around the listener are mixed with ramped weights. Exact per-band decay, no
+    discrete echoes at the onset (noise, not a delay network), the binaural set's diffuse-field colouring and
+    interaural coherence per band, the same energy in both channels; more cost than the FDN (the accuracy bench
+    compares the two). The default late reverb."""
 
-    def __init__(self, sample_rate: int, block: int, probe_rt60s, seconds: float = 3.0, seed: int = 0):
+    def __init__(self, sample_rate: int, block: int, probe_rt60s, seconds: float = 3.0, seed: int = 0,
+                 gains: np.ndarray | None = None, coherence: np.ndarray | None = None):
         self.B = B = block
         self.nf = B + 1
-        tails = [synth_tail(rt, sample_rate, seed=seed + k)[:, : int(seconds * sample_rate)]
-                 for k, rt in enumerate(probe_rt60s)]
+        tails = [synth_tail(rt, sample_rate, seed=seed + k, gains=gains, coherence=coherence)
+                 [:, : int(seconds * sample_rate)] for k, rt in enumerate(probe_rt60s)]
         self.P = P = max(1, int(np.ceil(max(t.shape[1] for t in tails) / B)))
         self.H = []
         for t in tails:
@@ -120,6 +160,7 @@ class ConvolutionReverb:
             parts = np.fft.rfft(pad.reshape(2, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, 2, nf)
             self.H.append(np.concatenate([parts[::-1], parts[::-1]]).astype(np.complex64))
         self.fdl = np.zeros((P, self.nf), np.complex64)
+        self._Y = np.zeros((2, self.nf), np.complex64)
         self.t = 0
         self.prev_in = np.zeros(B)
         self.w = None
@@ -140,8 +181,11 @@ class ConvolutionReverb:
         w_old = weights if self.w is None else self.w
         ramp = (np.arange(B) + 1) / B
         out = np.zeros((2, B))
+        from sonicverse_core.acoustics.kernels import fdl_mac
+
+        Y = self._Y
         for k in np.flatnonzero((weights > 1e-4) | (w_old > 1e-4)):
-            Y = np.einsum("sf,sef->ef", self.fdl, self.H[k][off:off + P])
+            fdl_mac(self.fdl, self.H[k], off, Y)
             y = np.fft.irfft(Y, 2 * B, axis=-1)[:, B:]
             out += y * (w_old[k] + (weights[k] - w_old[k]) * ramp)
         self.w = np.asarray(weights, float).copy()

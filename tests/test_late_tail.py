@@ -1,0 +1,124 @@
+"""The late tail (issue: sound between rooms, item 4): it starts after the direct sound and the mixing time, has no
+discrete echoes at its onset, decays at the probe's RT60 in every band, carries the HRTF set's diffuse-field
+interaural coherence and the same energy in both ears; a room whose surfaces absorb everything builds none."""
+import numpy as np
+import pytest
+from scipy.signal import butter, sosfilt
+
+from sonicverse_core.acoustics.probes import Probe
+from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+from sonicverse_core.scene.materials import BANDS
+
+FS = 48000
+SRC, LIS = np.array([1.0, 1.0, 1.5]), np.array([7.0, 5.0, 1.5])
+RT = np.array([1.2, 1.1, 1.0, 0.9, 0.8, 0.75, 0.7, 0.6, 0.5])
+
+
+def _probe():
+    return Probe(np.array([4.0, 3.0, 1.5]), RT.copy(), RT.copy(), np.zeros(3), np.array([8.0, 6.0, 3.0]),
+                 ("PlasterRough",) * 6, 1.0)
+
+
+def _late(output="binaural", seconds=1.6):
+    """(late part, direct part) of the impulse response from SRC to LIS: the full render minus the direct-only one."""
+    outs = []
+    for late in (True, False):
+        r = AcousticRenderer(None, RenderConfig(output=output, occlusion=False, early_reflections=False,
+                                                late_reverb=late), probes=[_probe()])
+        x = np.zeros(FS * 2, np.float32)
+        x[0] = 1.0
+        r.add_source(x, SRC, loop=False)
+        r.add_listener(LIS)
+        outs.append(r.render(seconds)[0].astype(np.float64))
+    return outs[0] - outs[1], outs[1]
+
+
+@pytest.fixture(scope="module")
+def binaural():
+    return _late()
+
+
+def test_the_tail_starts_after_the_direct_sound_and_the_mixing_time(binaural):
+    late, direct = binaural
+    arrival = int(np.argmax(np.abs(direct).max(0) > 1e-4 * np.abs(direct).max()))
+    first = int(np.argmax(np.abs(late).max(0) > 1e-7))
+    t_mix = np.sqrt(8 * 6 * 3) / 1000  # Polack: sqrt(V) ms
+    assert first >= arrival + int(0.9 * t_mix * FS), (first, arrival)
+    assert first <= arrival + int(1.5 * t_mix * FS) + 256  # and not much later
+
+
+def test_no_discrete_echoes_at_the_onset(binaural):
+    """No 5 ms window of the late part more than 6 dB above its smoothed decay (the FDN's first passes were
+    sparse pulses up to 12 dB above the direct sound)."""
+    late, _ = binaural
+    e = (late ** 2).sum(0)
+    first = int(np.argmax(e > 0))
+    w = int(0.005 * FS)
+    win = np.add.reduceat(e[first:first + 60 * w], np.arange(0, 60 * w, w))
+    t = np.arange(len(win))
+    fit = np.polyval(np.polyfit(t, 10 * np.log10(win + 1e-30), 1), t)  # the smoothed (exponential) decay
+    assert np.max(10 * np.log10(win + 1e-30) - fit) < 6.0
+
+
+def _t30(x):
+    edc = np.cumsum((x ** 2)[::-1])[::-1]
+    db = 10 * np.log10(edc / edc[0] + 1e-30)
+    i5, i35 = np.argmax(db <= -5), np.argmax(db <= -35)
+    slope = np.polyfit(np.arange(i5, i35) / FS, db[i5:i35], 1)[0]
+    return -60 / slope
+
+
+@pytest.mark.parametrize("band", range(len(BANDS)))
+def test_per_band_decay_matches_the_probe(binaural, band):
+    late, _ = binaural
+    fc = BANDS[band]
+    if fc * np.sqrt(2) >= FS / 2:
+        pytest.fail("band above Nyquist")  # never at 48 kHz: every band is checked
+    sos = butter(4, [fc / np.sqrt(2), min(fc * np.sqrt(2), 0.45 * FS)], "bandpass", fs=FS, output="sos")
+    y = sosfilt(sos, late[0])
+    start = int(np.argmax(np.abs(late[0]) > 0))
+    if band <= 1:  # low bands: their 1.2 s decay needs the whole window
+        assert _t30(y[start:]) == pytest.approx(RT[band], rel=0.2)
+    else:
+        assert _t30(y[start:]) == pytest.approx(RT[band], rel=0.12)
+
+
+def test_interaural_coherence_and_colour_follow_the_hrtf(binaural):
+    from sonicverse_core.acoustics.renderer import _hrtf
+    from sonicverse_core.acoustics.reverb import diffuse_field
+
+    late, _ = binaural
+    _, rho = diffuse_field(_hrtf("kemar", FS, int(round(0.004 * FS))))
+    got = []
+    for b, fc in enumerate(BANDS[2:8], start=2):
+        sos = butter(4, [fc / np.sqrt(2), fc * np.sqrt(2)], "bandpass", fs=FS, output="sos")
+        a, c = sosfilt(sos, late[0]), sosfilt(sos, late[1])
+        got.append(abs(np.sum(a * c)) / np.sqrt(np.sum(a * a) * np.sum(c * c)))
+        assert got[-1] == pytest.approx(rho[b], abs=0.15), (fc, got[-1], rho[b])
+    assert got[0] > 0.4 and got[-1] < 0.15  # coherent at 250 Hz, incoherent at 4 kHz
+    e = (late ** 2).sum(1)
+    assert abs(10 * np.log10(e[0] / e[1])) < 0.5  # the same tail energy in both ears
+
+
+def test_mono_output_has_the_same_tail_in_both_channels():
+    late, _ = _late("mono", 0.6)
+    assert np.abs(late).max() > 0 and np.allclose(late[0], late[1], atol=1e-7)
+
+
+def test_a_room_that_absorbs_everything_builds_no_reverb():
+    from sonicverse_core.acoustics.probes import reverb_free, scene_probes
+    from sonicverse_core.scene.spec import load_scene
+
+    scene = load_scene("shoebox:6x5x3?material=Transparent")
+    assert "absorbs everything" in reverb_free(scene)
+    assert scene_probes(scene) is None
+    r = AcousticRenderer(scene, RenderConfig(), probes=scene_probes(scene))
+    assert "late_reverb" not in r.subsystems and "early_reflections" not in r.subsystems
+    x = np.zeros(FS, np.float32)
+    x[0] = 1.0
+    r.add_source(x, (1.0, 1.0, 1.5), loop=False)
+    r.add_listener((4.0, 3.0, 1.5))
+    y = r.render(0.3)[0].astype(np.float64)
+    arrival = int(np.linalg.norm([3.0, 2.0, 0.0]) / 343 * FS)
+    assert np.sum(y[:, arrival + 600:] ** 2) < 1e-12 * np.sum(y ** 2)  # nothing after the direct sound
+    assert reverb_free(load_scene("shoebox:6x5x3")) is None
