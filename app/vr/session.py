@@ -288,7 +288,7 @@ class VRSession:
         with atomic_write(out / "trajectory.npy") as fh:
             np.save(fh, np.array(self.trajectory))
         if self.audio is not None:
-            for k, (ears, name) in enumerate(zip(self.audio.ears, ("binaural.wav", "robot_ears.wav"))):
+            for ears, name in zip(self.audio.ears, ("binaural.wav", "robot_ears.wav")):
                 if not streamed:
                     ears.stream_to(out / name)
                 ears.close()

@@ -528,7 +528,9 @@ class AcousticRenderer:
             if self.hrtf is not None:
                 from sonicverse_core.acoustics.reverb import diffuse_field
 
-                g, rho = diffuse_field(self.hrtf)
+                if getattr(self.hrtf, "diffuse", None) is None:  # once per HRTF set (shared by renderers)
+                    self.hrtf.diffuse = diffuse_field(self.hrtf)
+                g, rho = self.hrtf.diffuse
                 self._colour = {"gains": g, "coherence": rho}
             else:
                 self._colour = {"coherence": np.ones(len(BANDS)) if self.cfg.output == "mono" else None}

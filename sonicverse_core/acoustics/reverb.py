@@ -8,6 +8,8 @@ unit energy and two decorrelated output mixes feed the two ears.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 BASE_DELAYS = np.array([1031, 1327, 1523, 1723, 1949, 2179, 2437, 2719])  # samples at 48 kHz (primes)
@@ -139,6 +141,28 @@ def synth_tail(rt60: np.ndarray, sample_rate: int, seconds: float | None = None,
     return out * np.sqrt(13.8155 / (mid * sample_rate))
 
 
+def _tail_length(rt60, sample_rate: int) -> int:
+    """Samples of :func:`synth_tail` for these RT60s (its default length)."""
+    rt = np.clip(np.asarray(rt60, float), 0.05, 60.0)
+    return int(min(float(np.max(rt[2:])), 8.0) * sample_rate) + 1
+
+
+@lru_cache(maxsize=64)
+def _partitions(rt60: tuple, sample_rate: int, B: int, P: int, seed: int, gains: tuple | None,
+                coherence: tuple | None) -> np.ndarray:
+    """A synthesised tail cut into P partitions of B samples, as spectra (2P, 2, B + 1) complex64, doubled so that
+    the frequency-domain delay line never wraps; read-only (shared)."""
+    g = None if gains is None else np.array(gains).reshape(2, -1)
+    t = synth_tail(np.array(rt60), sample_rate, seed=seed, gains=g,
+                   coherence=None if coherence is None else np.array(coherence))[:, : P * B]
+    pad = np.zeros((2, P * B))
+    pad[:, : t.shape[1]] = t
+    parts = np.fft.rfft(pad.reshape(2, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, 2, nf)
+    H = np.concatenate([parts[::-1], parts[::-1]]).astype(np.complex64)
+    H.setflags(write=False)
+    return H
+
+
 class ConvolutionReverb:
     """Uniformly partitioned overlap-save convolution (partitions of one block) with a synthesised tail per probe;
     the outputs of the probes around the listener are mixed with ramped weights. Exact per-band decay, no
@@ -150,15 +174,12 @@ class ConvolutionReverb:
                  gains: np.ndarray | None = None, coherence: np.ndarray | None = None):
         self.B = B = block
         self.nf = B + 1
-        tails = [synth_tail(rt, sample_rate, seed=seed + k, gains=gains, coherence=coherence)
-                 [:, : int(seconds * sample_rate)] for k, rt in enumerate(probe_rt60s)]
-        self.P = P = max(1, int(np.ceil(max(t.shape[1] for t in tails) / B)))
-        self.H = []
-        for t in tails:
-            pad = np.zeros((2, P * B))
-            pad[:, : t.shape[1]] = t
-            parts = np.fft.rfft(pad.reshape(2, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, 2, nf)
-            self.H.append(np.concatenate([parts[::-1], parts[::-1]]).astype(np.complex64))
+        key = (lambda a: None if a is None else tuple(np.round(np.asarray(a, float).ravel(), 6)))
+        n = [min(_tail_length(rt, sample_rate), int(seconds * sample_rate)) for rt in probe_rt60s]
+        self.P = P = max(1, int(np.ceil(max(n) / B)))
+        # tails are cached across renderers (an env builds one per episode): same parameters, same partitions
+        self.H = [_partitions(key(rt), sample_rate, B, P, seed + k, key(gains), key(coherence))
+                  for k, rt in enumerate(probe_rt60s)]
         self.fdl = np.zeros((P, self.nf), np.complex64)
         self._Y = np.zeros((2, self.nf), np.complex64)
         self.t = 0
