@@ -271,24 +271,39 @@ def _probe_from_json(d: dict) -> Probe:
 
 
 def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rng=None) -> np.ndarray:
-    """One probe per room at its navigable point nearest the centre (or n spread over the floor)."""
+    """One probe per room at the free point of that room nearest its centre (a cell of the robot's navigable
+    floor, else of the free floor; a room with no free floor gets none), or ``n`` spread over the navigable floor.
+    Each stands at ``height`` above the floor, lowered under a low ceiling (at most 0.3 m below it, at least half
+    way up): never inside solid geometry, never outside the enclosure. (k, 3)."""
     from sonicverse_core.geometry.navgrid import NavGrid
 
     grid = NavGrid(scene)
-    z = scene.floor_z + height
     if n is None:
-        rows, cols = np.nonzero(grid.labels == grid.main_label)
-        centers = grid.center_of(np.stack([rows, cols], 1)) if len(rows) else np.zeros((0, 2))
+        nav = grid.labels == grid.main_label
         pts = []
         for r in scene.rooms:
-            c = r.footprint.mean(0)
-            inside = r.contains(centers) if len(centers) else np.zeros(0, bool)
-            cand = centers[inside] if np.any(inside) else centers
-            pts.append(cand[np.argmin(np.linalg.norm(cand - c, axis=1))] if len(cand) else c)
-        return np.array([[p[0], p[1], z] for p in pts])
-    rng = rng or np.random.default_rng(0)
-    xy = grid.sample(rng, n)
-    return np.c_[xy, np.full(n, z)]
+            for mask in (nav, grid.floor):
+                rows, cols = np.nonzero(mask)
+                xy = grid.center_of(np.stack([rows, cols], 1)) if len(rows) else np.zeros((0, 2))
+                xy = xy[r.contains(xy)] if len(xy) else xy
+                if len(xy):
+                    pts.append(xy[np.argmin(np.linalg.norm(xy - r.footprint.mean(0), axis=1))])
+                    break
+        xy = np.array(pts).reshape(-1, 2)
+    else:
+        xy = grid.sample(rng or np.random.default_rng(0), n)
+    return np.c_[xy, _ear_heights(grid, xy, height)]
+
+
+def _ear_heights(grid, xy: np.ndarray, height: float) -> np.ndarray:
+    """z of probes at xy: ``height`` above the floor, or lower under a low ceiling (rays cast up, static only)."""
+    if len(xy) == 0:
+        return np.zeros(0)
+    z0 = grid.z_floor + 0.05
+    h = grid.caster.first_hit(np.c_[xy, np.full(len(xy), z0)], np.tile([0.0, 0.0, 1.0], (len(xy), 1)), 100.0,
+                              include_dynamic=False)
+    room_h = np.where(h.hit, z0 + h.distance - grid.z_floor, np.inf)
+    return grid.z_floor + np.minimum(height, np.maximum(room_h - 0.3, 0.5 * room_h))
 
 
 def eyring_rt60(dims, alpha_surfaces: dict, air: bool = True) -> np.ndarray:

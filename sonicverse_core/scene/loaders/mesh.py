@@ -1,9 +1,10 @@
 """GLB/glTF, OBJ and PLY scenes through trimesh.
 
-Each geometry (node) becomes a part. Its category is the node or geometry name without numeric suffixes ('wall.001'
+Each geometry (node; in OBJ files each object and group) becomes a part. Its category is the node or geometry name without numeric suffixes ('wall.001'
 -> 'wall'). Structure categories (walls, floors, ceilings, windows, columns...) form the static structure; everything
 else is a dynamic object. A geometry whose visual material is named after an acoustic material gets that material,
-else its category's material through the mapping, else ``Uniform``.
+else its category's material through the mapping, else ``Uniform``. Rooms are segmented from the free floor
+(regions joined by narrow openings, :mod:`sonicverse_core.geometry.rooms`).
 """
 from __future__ import annotations
 
@@ -27,7 +28,10 @@ def load_mesh_scene(path: str | Path, mapping: CategoryMapping, spec: str | None
     if p.suffix.lower() not in MESH_SUFFIXES:
         raise SceneFileError(f"unsupported scene file type '{p.suffix}'; use one of {', '.join(MESH_SUFFIXES)}")
     try:
-        loaded = trimesh.load(str(p), force="scene", process=False)
+        # OBJ: every `o` object and `g` group is a part of its own (trimesh merges them by material otherwise)
+        extra = {"group_material": False, "split_objects": True, "split_groups": True} \
+            if p.suffix.lower() == ".obj" else {}
+        loaded = trimesh.load(str(p), force="scene", process=False, **extra)
     except Exception as exc:  # trimesh raises many types for broken files
         raise SceneFileError(f"cannot read {p}: {exc}") from None
     static, objects = [], []
@@ -65,7 +69,13 @@ def load_mesh_scene(path: str | Path, mapping: CategoryMapping, spec: str | None
     b = scene.bounds
     if np.any(b[1] - b[0] <= 1e-6):
         raise MeshError(f"{p}: the geometry is flat or empty (bounds {b.tolist()}); a room needs volume")
-    lo, hi = b
-    scene.rooms = [Room("scene", "unknown", np.array([(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]),
-                        float(lo[2]), float(hi[2]))]
+    from sonicverse_core.geometry.navgrid import NavGrid
+    from sonicverse_core.geometry.rooms import segment_rooms
+
+    # a mesh names no rooms: regions of free floor joined by narrow openings (sonicverse_core/geometry/rooms.py)
+    scene.rooms = segment_rooms(NavGrid(scene))
+    if not scene.rooms:  # no free floor at all: the bounding box stands for the one room
+        lo, hi = b
+        scene.rooms = [Room("scene", "unknown", np.array([(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]),
+                                                          (lo[0], hi[1])]), float(lo[2]), float(hi[2]))]
     return scene
