@@ -85,10 +85,9 @@ def test_per_band_decay_matches_the_probe(binaural, band):
 
 def test_interaural_coherence_and_colour_follow_the_hrtf(binaural):
     from sonicverse_core.acoustics.renderer import _hrtf
-    from sonicverse_core.acoustics.reverb import diffuse_field
 
     late, _ = binaural
-    _, rho = diffuse_field(_hrtf("kemar", FS, int(round(0.004 * FS))))
+    _, rho = _hrtf("kemar", FS, int(round(0.004 * FS))).diffuse_field
     got = []
     for b, fc in enumerate(BANDS[2:8], start=2):
         sos = butter(4, [fc / np.sqrt(2), fc * np.sqrt(2)], "bandpass", fs=FS, output="sos")

@@ -8,6 +8,8 @@ to the engine rate and truncated to ``taps``.
 """
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 from scipy.signal import resample_poly
 from scipy.spatial import ConvexHull
@@ -42,9 +44,9 @@ class HrtfInterpolator:
         self.filters = (aligned / max(norm, 1e-12)).astype(np.float32)
         self.onsets = start / sample_rate  # seconds (the PRE samples are part of the filter)
         self.taps = taps
-        self._complete_sphere()
+        hull = self._complete_sphere()
         try:
-            hull = ConvexHull(self.directions)
+            hull = hull or ConvexHull(self.directions)
         except Exception as exc:  # noqa: BLE001 - scipy's QhullError: a degenerate layout
             from sonicverse_core.errors import AssetError
 
@@ -56,12 +58,40 @@ class HrtfInterpolator:
         self._centroid = self.directions[self._tri].mean(1)
         self._centroid /= np.linalg.norm(self._centroid, axis=1, keepdims=True)
 
-    def _complete_sphere(self) -> None:
+    @cached_property
+    def diffuse_field(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per band of ``BANDS``: the diffuse-field amplitude gain of each ear (2, 9) (the power average over all
+        measured directions, on the same scale as the direct path's filters) and the diffuse-field interaural
+        coherence (9,) |sum_dirs H_L H_R*| / sqrt(sum |H_L|^2 sum |H_R|^2), averaged over the band's bins, with the
+        interaural delays (the onsets) included: near 1 at low frequencies, falling towards 0 above about 1 kHz.
+        What the late tail is coloured and decorrelated with; computed once per set."""
+        from sonicverse_core.scene.materials import BANDS
+
+        fs = self.sample_rate
+        n = 1 << int(np.ceil(np.log2(max(4096, 2 * self.taps))))
+        f = np.fft.rfftfreq(n, 1 / fs)
+        H = np.fft.rfft(self.filters.astype(np.float64), n, axis=-1)  # (dirs, 2, F)
+        H = H * np.exp(-2j * np.pi * f[None, None, :] * self.onsets[:, :, None])
+        power = np.mean(np.abs(H) ** 2, axis=0)  # (2, F)
+        cross = np.abs(np.sum(H[:, 0] * np.conj(H[:, 1]), axis=0))
+        coh = cross / np.sqrt(np.maximum(np.sum(np.abs(H[:, 0]) ** 2, 0) * np.sum(np.abs(H[:, 1]) ** 2, 0), 1e-300))
+        gains, coherence = np.ones((2, len(BANDS))), np.ones(len(BANDS))
+        for b, fc in enumerate(BANDS):
+            sel = (f >= fc / np.sqrt(2)) & (f < fc * np.sqrt(2))
+            if sel.any():
+                gains[:, b] = np.sqrt(power[:, sel].mean(axis=1))
+                coherence[b] = float(np.clip(coh[sel].mean(), 0.0, 1.0))
+            elif b:  # a band above the Nyquist frequency: as the one below
+                gains[:, b], coherence[b] = gains[:, b - 1], coherence[b - 1]
+        return gains, coherence
+
+    def _complete_sphere(self):
         """Sets that do not surround the head get virtual directions, each the mean of the aligned filters and
         onsets (no interaural difference, as for a source straight above or below): a set measured in one plane
         (the horizontal ring, a common SOFA layout) gets the two poles of that plane; a set on one side of a plane
         through the head (no measurement below the horizon) gets the pole of the empty side, so every direction
-        falls in a triangle that does not pass through the head's centre. Fewer than 3 directions are refused."""
+        falls in a triangle that does not pass through the head's centre. Fewer than 3 directions are refused.
+        Returns the hull when the set already surrounds the head (nothing added), else None."""
         from sonicverse_core.errors import AssetError
 
         d = self.directions
@@ -72,17 +102,19 @@ class HrtfInterpolator:
             poles = np.stack([vt[-1], -vt[-1]])
         else:
             try:
-                eq = ConvexHull(d).equations  # outward normals n and offsets c: n.x + c = 0 on a facet
-            except Exception:  # noqa: BLE001 - refused with the hull below
-                return
+                hull = ConvexHull(d)
+            except Exception:  # noqa: BLE001 - refused by the caller's hull
+                return None
+            eq = hull.equations  # outward normals n and offsets c: n.x + c = 0 on a facet
             if eq[:, 3].max() < -0.05:
-                return  # the centre is well inside: nothing to add
+                return hull  # the centre is well inside: nothing to add
             far = eq[np.argmax(eq[:, 3]), :3]  # the facet nearest the centre faces the empty side
             poles = far[None] / np.linalg.norm(far)
         mean_f = self.filters.mean(0, keepdims=True)
         self.directions = np.concatenate([d, poles])
         self.filters = np.concatenate([self.filters, np.repeat(mean_f, len(poles), 0)]).astype(np.float32)
         self.onsets = np.concatenate([self.onsets, np.full((len(poles), 2), float(self.onsets.mean()))])
+        return None
 
     def _exact_triangles(self, d: np.ndarray) -> np.ndarray:
         out = np.empty(len(d), np.int64)

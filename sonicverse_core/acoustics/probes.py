@@ -279,12 +279,10 @@ def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rn
 
     grid = NavGrid(scene)
     if n is None:
-        nav = grid.labels == grid.main_label
+        free = [grid.center_of(np.argwhere(mask)) for mask in (grid.labels == grid.main_label, grid.floor)]
         pts = []
         for r in scene.rooms:
-            for mask in (nav, grid.floor):
-                rows, cols = np.nonzero(mask)
-                xy = grid.center_of(np.stack([rows, cols], 1)) if len(rows) else np.zeros((0, 2))
+            for xy in free:  # the robot's navigable floor first, else any free floor of the room
                 xy = xy[r.contains(xy)] if len(xy) else xy
                 if len(xy):
                     pts.append(xy[np.argmin(np.linalg.norm(xy - r.footprint.mean(0), axis=1))])
@@ -341,6 +339,9 @@ def scene_probes(scene, config: BakeConfig = BakeConfig(), positions=None, progr
     and its ``subsystems`` say so."""
     if reverb_free(scene) is not None:
         return None
+    from sonicverse_core.geometry.raycast import SceneRayCaster
+
+    caster = caster or SceneRayCaster(scene)  # one for the enclosure check and the bake
     pos = default_probe_positions(scene) if positions is None else np.atleast_2d(np.asarray(positions, float))
     if len(pos) == 0 or not np.any(enclosed_fraction(scene, pos, caster=caster) > 0.5):
         return None

@@ -526,11 +526,7 @@ class AcousticRenderer:
         tails. Computed once per renderer."""
         if getattr(self, "_colour", None) is None:
             if self.hrtf is not None:
-                from sonicverse_core.acoustics.reverb import diffuse_field
-
-                if getattr(self.hrtf, "diffuse", None) is None:  # once per HRTF set (shared by renderers)
-                    self.hrtf.diffuse = diffuse_field(self.hrtf)
-                g, rho = self.hrtf.diffuse
+                g, rho = self.hrtf.diffuse_field  # computed once per set (renderers share it)
                 self._colour = {"gains": g, "coherence": rho}
             else:
                 self._colour = {"coherence": np.ones(len(BANDS)) if self.cfg.output == "mono" else None}

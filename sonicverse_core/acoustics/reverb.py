@@ -73,33 +73,6 @@ class FDNReverb:
         return out
 
 
-def diffuse_field(hrtf, sample_rate: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Per band of ``BANDS``, for an :class:`~sonicverse_core.acoustics.hrtf.HrtfInterpolator`: the diffuse-field
-    amplitude gain of each ear (2, 9) (the power average over all measured directions, on the same scale as the
-    direct path's filters) and the diffuse-field interaural coherence (9,)
-    |sum_dirs H_L H_R*| / sqrt(sum |H_L|^2 sum |H_R|^2), averaged over the band's bins, with the interaural delays
-    (the filters' onsets) included: near 1 at low frequencies, falling towards 0 above about 1 kHz."""
-    from sonicverse_core.scene.materials import BANDS
-
-    fs = hrtf.sample_rate if sample_rate is None else sample_rate
-    n = 1 << int(np.ceil(np.log2(max(4096, 2 * hrtf.taps))))
-    f = np.fft.rfftfreq(n, 1 / fs)
-    H = np.fft.rfft(hrtf.filters.astype(np.float64), n, axis=-1)  # (dirs, 2, F)
-    H = H * np.exp(-2j * np.pi * f[None, None, :] * hrtf.onsets[:, :, None])
-    power = np.mean(np.abs(H) ** 2, axis=0)  # (2, F)
-    cross = np.abs(np.sum(H[:, 0] * np.conj(H[:, 1]), axis=0))
-    coh = cross / np.sqrt(np.maximum(np.sum(np.abs(H[:, 0]) ** 2, 0) * np.sum(np.abs(H[:, 1]) ** 2, 0), 1e-300))
-    gains, coherence = np.ones((2, len(BANDS))), np.ones(len(BANDS))
-    for b, fc in enumerate(BANDS):
-        sel = (f >= fc / np.sqrt(2)) & (f < fc * np.sqrt(2))
-        if sel.any():
-            gains[:, b] = np.sqrt(power[:, sel].mean(axis=1))
-            coherence[b] = float(np.clip(coh[sel].mean(), 0.0, 1.0))
-        elif b:  # a band above the Nyquist frequency: as the one below
-            gains[:, b], coherence[b] = gains[:, b - 1], coherence[b - 1]
-    return gains, coherence
-
-
 def synth_tail(rt60: np.ndarray, sample_rate: int, seconds: float | None = None, seed: int = 0,
                gains: np.ndarray | None = None, coherence: np.ndarray | None = None) -> np.ndarray:
     """A two-channel late-reverb impulse response: octave-band noise per band of ``BANDS`` decaying at that band's
