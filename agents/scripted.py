@@ -1,12 +1,14 @@
 """Scripted baselines for the navigation tasks.
 
-Every agent has ``reset(env, obs, info)`` (``env`` is the unwrapped environment; only the oracle looks inside it)
-and ``act(obs, info) -> action``. Randomness comes from the Generator passed in.
+Every agent has ``reset(env, obs, info)`` and ``act(obs, info) -> action``. ``env`` is the unwrapped environment:
+agents read its action space, robot and step length; only privileged agents read state beyond the observations,
+and they do it through the one documented channel, ``env.privileged()``. Randomness comes from the Generator
+passed in.
 
 * ``random``: uniform continuous wheel velocities; like the paper's baseline it stops automatically at the goal
-  (it is told ``info['at_goal']``; the AudioGoal tasks end there by themselves).
-* ``oracle``: drives the geodesic shortest path (string-pulled) with a pursuit controller; proves the metrics
-  (SR and SPL near 1).
+  (privileged: it reads ``env.privileged()["at_goal"]``; the AudioGoal tasks end there by themselves).
+* ``oracle`` (privileged: ``world``, ``goals``): drives the geodesic shortest path (string-pulled) with a pursuit
+  controller; proves the metrics (SR and SPL near 1).
 * ``gan``: in the spirit of Gan et al. (2020): estimates the sound's direction from the interaural time difference
   (spinning in place to resolve front from back), triangulates the source from bearings taken at different places,
   builds an occupancy map from depth, and plans on it (Dijkstra over the map) to the estimate.
@@ -68,13 +70,13 @@ class RandomAgent(Agent):
     name = "random"
 
     def act(self, obs, info):
-        if self.stop_dim and info.get("at_goal"):
+        if self.stop_dim and self.env.privileged().get("at_goal"):  # the paper's random baseline stops at the goal
             return self._out([0.0, 0.0], stop=True)
         return self._out(self.rng.uniform(-1.0, 1.0, 2))
 
 
 class OracleAgent(Agent):
-    """Privileged: reads the world and the goal from the environment."""
+    """Privileged: reads the world, the goals and whether it is at one (``env.privileged()``)."""
 
     name = "oracle"
 
@@ -83,8 +85,8 @@ class OracleAgent(Agent):
         self._plan()
 
     def _plan(self):
-        w = self.env.home.world
-        goals = self.env._goals
+        priv = self.env.privileged()
+        w, goals = priv["world"], priv["goals"]
         from_robot = w.grid.distance_field(w.pose[:2])
         g = goals[int(np.argmin(w.grid.geodesic_from_field(from_robot, goals)))]
         path, length = w.grid.shortest_path(w.pose[:2], g)
@@ -92,8 +94,9 @@ class OracleAgent(Agent):
         self.k = 1
 
     def act(self, obs, info):
-        w = self.env.home.world
-        if info.get("at_goal"):
+        priv = self.env.privileged()
+        w = priv["world"]
+        if priv["at_goal"]:
             return self._out([0.0, 0.0], stop=True)
         p = w.pose[:2]
         while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.15:
@@ -288,6 +291,3 @@ def _grid_path(blocked: np.ndarray, start, goal):
     while out[-1] != s:
         out.append(int(pred[out[-1]]))
     return [(i // nx, i % nx) for i in reversed(out)]
-
-
-AGENTS = {"random": RandomAgent, "oracle": OracleAgent, "gan": GanAgent}

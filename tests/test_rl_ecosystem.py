@@ -34,8 +34,10 @@ def test_sb3_check_env_and_ppo_on_two_vectorised_envs(env_id):
     from stable_baselines3.common.env_checker import check_env
     from stable_baselines3.common.env_util import make_vec_env
 
+    from sonicverse_core.tasks.registry import task_spec
+
     env = gym.make(env_id, **SMALL)
-    assert env.spec.max_episode_steps == 500
+    assert env.spec.max_episode_steps == task_spec(env_id).max_steps == env.unwrapped.cfg.max_steps
     check_env(env.unwrapped, warn=False, skip_render_check=True)
     env.close()
     vec = make_vec_env(env_id, n_envs=2, seed=0, env_kwargs=SMALL)

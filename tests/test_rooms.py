@@ -94,7 +94,7 @@ def test_a_room_lower_than_1_5_m_still_gets_a_probe_under_its_ceiling():
     scene = load_scene("shoebox:6x4x1.2")
     probes = scene_probes(scene)
     assert probes is not None and len(probes) == 1
-    assert 0.6 <= probes[0].position[2] <= 0.9 + 1e-9
+    assert 0.6 <= probes[0].position[2] <= 0.9 + 1e-6  # float32 once read back from the bake cache
 
 
 def test_obj_objects_and_groups_load_as_separate_parts(tmp_path):

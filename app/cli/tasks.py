@@ -42,7 +42,95 @@ def cmd_bench_env(a) -> int:
     return 0
 
 
+def cmd_task_list(a) -> int:
+    from sonicverse_core.tasks.registry import TASKS
+
+    rows = [{"task": s.cli, "name": s.name, "kind": s.kind, "env_id": s.env_id, "agents": list(s.agents),
+             "metrics": list(s.metrics), "summary": s.summary} for s in TASKS.values()]
+    if a.json:
+        print(json.dumps(rows))
+    else:
+        for r in rows:
+            print(f"{r['task']:<22} {r['kind']:<9} agents: {', '.join(r['agents']):<22} {r['summary']}")
+    return 0
+
+
+def cmd_task_run(a) -> int:
+    from app.tasks.run import run_task
+    from sonicverse_core.tasks.registry import task_spec
+
+    spec = task_spec(a.name)
+    kw = {}
+    if a.homes is not None:
+        kw["homes"] = a.homes
+    if a.max_steps is not None:
+        kw["max_steps"] = a.max_steps
+    participant, task_kw = {}, {}
+    if spec.kind == "trials":
+        participant = {"noise_deg": a.noise, "front_back": a.front_back, "learning_rate": a.learning_rate}
+        task_kw = {"mode": a.mode, "blocks": a.blocks, "staircase": a.staircase, "difficulty": a.difficulty,
+                   "render": not a.no_render}
+    res = run_task(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, out=a.out, maps=a.maps,
+                   env_kwargs=kw, trials=a.trials, participant=participant, task_kwargs=task_kw,
+                   progress=not a.json)
+    if a.json:
+        print(json.dumps(res))
+    else:
+        for k in spec.metrics:
+            v = res[k]
+            if v["mean"] is None:
+                continue
+            lo, hi = v["ci95"]
+            ci = f"[{lo:.3f}, {hi:.3f}]" if lo is not None else "[n/a]"
+            print(f"{k:>26}: {v['mean']:.3f}  95% CI {ci}  (n={v['n']})")
+        if "csv" in res:
+            print(f"CSV: {res['csv']}")
+    return 0
+
+
 def add_task_commands(sub, bench_sub) -> None:
+    from sonicverse_core.tasks.registry import TASKS
+
+    t = sub.add_parser("task", help="the task registry: list the tasks, run one with an agent",
+                       description="Every task (navigation, speaker following, orientation training) and its agents.")
+    ts = t.add_subparsers(dest="task_cmd", required=True, metavar="{list,run}")
+    tl = ts.add_parser("list", help="list the tasks, their agents and metrics")
+    tl.add_argument("--json", action="store_true", help="print one JSON list")
+    tl.set_defaults(func=cmd_task_list)
+    clis = [s.cli for s in TASKS.values()]
+    tr = ts.add_parser("run", help="run a task with an agent (headless); print its metrics with 95%% CIs",
+                       description="Run N episodes (robot tasks) or trials (orientation training) and print the "
+                       "task's metrics, each with a 95%% confidence interval; per-episode/per-trial CSV under --out.")
+    tr.add_argument("name", choices=clis, metavar="TASK", help=f"one of {', '.join(clis)}")
+    tr.add_argument("--agent", default=None,
+                    help="the agent (default: the task's first; see `sonicverse task list`)")
+    tr.add_argument("--episodes", type=A.count(1, 100_000), default=10, help="episodes (default: %(default)s)")
+    tr.add_argument("--trials", type=A.count(1, 1_000_000), default=None,
+                    help="trials per block (orientation training; default: --episodes)")
+    tr.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")
+    tr.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
+    tr.add_argument("--homes", type=A.count(1, 1000), default=None, help="use the first N homes of the split")
+    tr.add_argument("--max-steps", type=A.count(1, 100_000), default=None, help="episode length limit")
+    tr.add_argument("--out", default=None, metavar="DIR", type=A.out_dir, help="write the CSV (and plots) here")
+    tr.add_argument("--maps", default=None, metavar="DIR", type=A.out_dir,
+                    help="write a top-down trajectory picture per episode")
+    g = tr.add_argument_group("orientation training")
+    g.add_argument("--mode", default="turn", choices=("turn", "walk", "mixed"), help="trial kind (default: turn)")
+    g.add_argument("--blocks", type=A.count(1, 1000), default=1, help="blocks (default: %(default)s)")
+    g.add_argument("--staircase", default="1up2down", choices=("1up2down", "1up3down", "none"),
+                   help="adaptive staircase (default: %(default)s)")
+    g.add_argument("--difficulty", default="duration", choices=("duration", "reverb", "distractor"),
+                   help="what the staircase changes (default: %(default)s)")
+    g.add_argument("--noise", type=A.number(0, 180, unit="degrees"), default=10.0,
+                   help="simulated participant: localisation noise in degrees (default: %(default)s)")
+    g.add_argument("--front-back", type=A.number(0, 1), default=0.1,
+                   help="simulated participant: front-back confusion probability (default: %(default)s)")
+    g.add_argument("--learning-rate", type=A.number(0, 10), default=0.0,
+                   help="simulated participant: learning rate per trial (default: %(default)s)")
+    g.add_argument("--no-render", action="store_true", help="do not render the stimuli (the model needs no audio)")
+    tr.add_argument("--json", action="store_true", help="print one JSON object")
+    tr.set_defaults(func=cmd_task_run)
+
     from app.tasks.evaluate import TASK_NAMES
 
     e = sub.add_parser("eval", help="evaluate an agent on a navigation task (SR, SPL, SNA)",

@@ -13,7 +13,9 @@ import numpy as np
 
 from sonicverse_core.errors import ConfigError
 
-TASK_NAMES = ("AudioGoal", "AudioPointGoal", "SemanticAudioNav")
+from sonicverse_core.tasks.registry import navigation
+
+TASK_NAMES = tuple(s.name for s in navigation())
 CSV_FIELDS = ("episode", "episode_id", "scene", "category", "object", "sound", "sound_seconds", "geodesic",
               "success", "spl", "sna", "soft_spl", "distance_to_goal", "path_length", "steps", "n_star", "collisions",
               "reward")
@@ -24,11 +26,9 @@ def episode_seed(seed: int, i: int) -> int:
 
 
 def make_env(task: str, **kwargs):
-    from sonicverse_core.tasks.nav import TASKS
+    from sonicverse_core.tasks import make_env as make
 
-    if task not in TASKS:
-        raise ConfigError(f"unknown task '{task}'; use one of {', '.join(TASKS)}")
-    return TASKS[task](**kwargs)
+    return make(task, **kwargs)
 
 
 def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: str = "heard", seed: int = 0,
@@ -50,7 +50,7 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
         for i in bar(range(episodes), desc=f"{task} {agent}", enabled=progress is not None):
             s = episode_seed(seed, i)
             obs, info = env.reset(seed=s)
-            ag = make_agent(agent, np.random.default_rng(s))
+            ag = make_agent(agent, np.random.default_rng(s), task)
             ag.reset(env, obs, info)
             ep = env.episode
             traj = [env.home.world.pose[:2].copy()]

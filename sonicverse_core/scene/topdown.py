@@ -16,7 +16,8 @@ ROOM_COLOURS = {"living room": "#f6e7c8", "kitchen": "#fbd5c0", "bedroom": "#dce
 
 
 def draw_map(scene: Scene, out: str | Path, grid=None, paths: list[np.ndarray] | None = None,
-             markers: dict[str, tuple] | None = None, title: str | None = None, dpi: int = 110) -> Path:
+             markers: dict[str, tuple] | None = None, title: str | None = None, dpi: int = 110,
+             path_labels: list[str] | None = None) -> Path:
     """Write a top-down map of ``scene`` to ``out``; optional navgrid overlay, trajectories and markers."""
     import matplotlib
 
@@ -63,8 +64,12 @@ def draw_map(scene: Scene, out: str | Path, grid=None, paths: list[np.ndarray] |
         ax.add_patch(Polygon(world, fc="#c9b79c", ec="#6d5d45", lw=0.6, alpha=0.9, zorder=2))
         c = world.mean(0)
         ax.text(c[0], c[1], o.category.replace("_", " "), ha="center", va="center", fontsize=5.5, zorder=6)
-    for path in paths or []:
-        ax.plot(path[:, 0], path[:, 1], "-", color="#d62728", lw=1.6, zorder=7)
+    colours = ("#d62728", "#1f77b4", "#2ca02c", "#9467bd")
+    for k, path in enumerate(paths or []):
+        label = path_labels[k] if path_labels and k < len(path_labels) else None
+        ax.plot(path[:, 0], path[:, 1], "-", color=colours[k % len(colours)], lw=1.6, zorder=7, label=label)
+    if path_labels:
+        ax.legend(loc="upper right", fontsize=8)
     for label, (x, y, style) in (markers or {}).items():
         ax.plot([x], [y], style, ms=9, zorder=8)
         ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8, zorder=8)

@@ -208,6 +208,29 @@ class RGBDCamera:
         self.rs = RenderScene(scene)
         self.scene = self.rs.scene
         self.cam_node = self.scene.add(self.camera, pose=np.eye(4))
+        self._actors: dict[str, tuple] = {}
+
+    # --- actors: bodies that are not part of the core scene (a person), seen but not heard as geometry ------------
+    def set_actor(self, name: str, mesh, rgba=(200, 120, 90, 255)) -> None:
+        """Show ``mesh`` (a trimesh in its local frame) as actor ``name`` (the same mesh again: nothing to do)."""
+        import pyrender
+
+        held = self._actors.get(name)
+        if held is not None and held[0] is mesh:
+            return
+        if held is not None:
+            self.scene.remove_node(held[1])
+        tm = mesh.copy()
+        tm.visual.face_colors = np.tile(np.asarray(rgba, np.uint8), (len(tm.faces), 1))
+        self._actors[name] = (mesh, self.scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False), pose=np.eye(4)))
+
+    def move_actor(self, name: str, pose: np.ndarray) -> None:
+        self.scene.set_pose(self._actors[name][1], np.asarray(pose, float))
+
+    def clear_actors(self) -> None:
+        for _, node in self._actors.values():
+            self.scene.remove_node(node)
+        self._actors = {}
 
     def render(self, x, y, z, yaw, pitch=0.0) -> dict:
         self.rs.sync()

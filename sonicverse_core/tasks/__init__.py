@@ -1,29 +1,40 @@
-"""Embodied tasks as Gymnasium environments (``Sonicverse/AudioGoal-v0``, ``Sonicverse/AudioPointGoal-v0``,
-``Sonicverse/SemanticAudioNav-v0``), episodes and metrics.
+"""Embodied tasks as Gymnasium environments, trial tasks for people, episodes and metrics.
 
-Importing this package registers the environments. In a fresh interpreter, name the module in the id and
-Gymnasium imports it first: ``gymnasium.make("sonicverse_core.tasks:Sonicverse/AudioGoal-v0")`` (Gymnasium 1.x does
-not load entry points, so ``gymnasium.make("Sonicverse/AudioGoal-v0")`` works only after ``import
-sonicverse_core.tasks``). The spec carries ``max_episode_steps`` = the task's ``max_steps`` (500).
+Every task is listed once, in :mod:`sonicverse_core.tasks.registry`. Importing this package registers the
+environments of the embodied ones (``Sonicverse/AudioGoal-v0``, ``Sonicverse/AudioPointGoal-v0``,
+``Sonicverse/SemanticAudioNav-v0``, ``Sonicverse/SpeakerFollowing-v0``). In a fresh interpreter, name the module in
+the id and Gymnasium imports it first: ``gymnasium.make("sonicverse_core.tasks:Sonicverse/AudioGoal-v0")``
+(Gymnasium 1.x does not load entry points, so ``gymnasium.make("Sonicverse/AudioGoal-v0")`` works only after
+``import sonicverse_core.tasks``). Each spec carries ``max_episode_steps`` = the task's ``max_steps`` (the env
+truncates itself there too).
 """
 from __future__ import annotations
 
-MAX_STEPS = 500  # TaskConfig.max_steps: the env truncates itself there too
+from sonicverse_core.tasks.registry import TASKS, embodied, task_spec
 
-ENV_IDS = {"AudioGoal": "Sonicverse/AudioGoal-v0", "AudioPointGoal": "Sonicverse/AudioPointGoal-v0",
-           "SemanticAudioNav": "Sonicverse/SemanticAudioNav-v0"}
+MAX_STEPS = TASKS["AudioGoal"].max_steps
+
+#: task name -> Gymnasium id, for every embodied task
+ENV_IDS = {s.name: s.env_id for s in embodied()}
 
 
 def register_envs() -> None:
     import gymnasium as gym
 
-    for task, env_id in ENV_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=f"sonicverse_core.tasks.nav:{task}Env", max_episode_steps=MAX_STEPS,
-                         disable_env_checker=True)
+    for s in embodied():
+        if s.env_id not in gym.registry:
+            gym.register(id=s.env_id, entry_point="sonicverse_core.tasks.base:TaskEnv", kwargs={"task": s.name},
+                         max_episode_steps=s.max_steps, disable_env_checker=True)
 
 
 register_envs()
+
+
+def make_env(task: str, **kwargs):
+    """The unwrapped env of an embodied task (by name, command-line name or id)."""
+    from sonicverse_core.tasks.base import TaskEnv
+
+    return TaskEnv(task=task_spec(task).name, **kwargs)
 
 
 class EnvFactory:
@@ -31,11 +42,12 @@ class EnvFactory:
     (the camera's GL context is created there, on the first reset)."""
 
     def __init__(self, task: str, **kwargs):
-        if task not in ENV_IDS:
+        spec = task_spec(task)
+        if spec.env_id is None:
             from sonicverse_core.errors import ConfigError
 
-            raise ConfigError(f"unknown task '{task}'; use one of {', '.join(ENV_IDS)}")
-        self.task, self.kwargs = task, kwargs
+            raise ConfigError(f"task '{spec.cli}' has no Gymnasium env")
+        self.task, self.kwargs = spec.name, kwargs
 
     def __call__(self):
         import gymnasium as gym

@@ -71,6 +71,9 @@ class World:
         self._rebuild()
         self.pose = np.array([*self.grid.sample(np.random.default_rng(0))[0], 0.0])
         self.bumped = False
+        #: moving bodies that are not part of the scene (a person): name -> (xy (2,), radius m). The robot cannot
+        #: move into one, but may always move away from a body that came onto it.
+        self.bodies: dict[str, tuple[np.ndarray, float]] = {}
 
     # --- collision map ----------------------------------------------------------------------------------------
     def _cells(self, o) -> np.ndarray:
@@ -113,7 +116,14 @@ class World:
         row = math.floor((y - g.origin[1]) / c)
         if not (0 <= row < g.shape[0] and 0 <= col < g.shape[1]):
             return False
-        return bool(self._nav_flat[row * g.shape[1] + col])
+        if not self._nav_flat[row * g.shape[1] + col]:
+            return False
+        for xy, r in self.bodies.values():
+            lim = r + self.robot.radius
+            d2 = (x - xy[0]) ** 2 + (y - xy[1]) ** 2
+            if d2 < lim * lim and d2 < (self.pose[0] - xy[0]) ** 2 + (self.pose[1] - xy[1]) ** 2:
+                return False
+        return True
 
     # --- robot ------------------------------------------------------------------------------------------------
     def place_robot(self, x: float, y: float, yaw: float) -> None:
@@ -220,6 +230,7 @@ class World:
         """Every object and door back where the scene started (a new episode)."""
         changed = self.carried is not None
         self.carried = None
+        self.bodies = {}
         for o in self.scene.objects:
             pose, frac = self._initial[o.name]
             if isinstance(o, Door):

@@ -1,0 +1,136 @@
+"""`sonicverse task run`: any task of the registry with one of its agents, headless.
+
+Embodied tasks (a robot in a Gymnasium env): N episodes; episode i of a run with seed S is reset with seed
+``SeedSequence([S, i])``, the agent gets ``default_rng`` of the same seed. Trial tasks (orientation training): a
+session of trials with the simulated participant. Prints one JSON object with the task's metric keys (each
+``{"mean", "ci95", "n"}``: Wilson intervals for rates, Student t otherwise), writes a per-episode or per-trial CSV
+under ``--out`` (and a learning curve for orientation training) and, with ``maps``, a top-down picture of each
+episode with the robot's (and the person's) trajectory.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from sonicverse_core.errors import ConfigError
+from sonicverse_core.tasks.registry import TaskSpec, task_spec
+
+
+def episode_seed(seed: int, i: int) -> int:
+    return int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    from sonicverse_core.storage import write_text_atomic
+
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    import io
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    w.writerows(rows)
+    write_text_atomic(path, buf.getvalue())
+
+
+def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str = "test", seed: int = 0,
+             out: str | Path | None = None, maps: str | Path | None = None, env_kwargs: dict | None = None,
+             trials: int | None = None, participant: dict | None = None, task_kwargs: dict | None = None,
+             progress: bool = False) -> dict:
+    spec = task_spec(task)
+    agent = agent or spec.agents[0]
+    if agent not in spec.agents:
+        raise ConfigError(f"unknown agent '{agent}' for {spec.cli}; use one of {', '.join(spec.agents)}")
+    if spec.kind == "trials":
+        return _run_trials(spec, agent, trials or episodes, seed, out, participant or {}, task_kwargs or {},
+                           progress)
+    return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress)
+
+
+def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: int, out, maps, kw: dict,
+                  progress: bool) -> dict:
+    from agents import make_agent
+    from sonicverse_core.progress import progress as bar
+    from sonicverse_core.tasks import make_env
+    from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
+
+    if episodes < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {episodes}")
+    env = make_env(spec.name, split=split, **kw)
+    rows = []
+    try:
+        for i in bar(range(episodes), desc=f"{spec.cli} {agent}", enabled=progress):
+            s = episode_seed(seed, i)
+            obs, info = env.reset(seed=s)
+            ag = make_agent(agent, np.random.default_rng(s), spec.name)
+            ag.reset(env, obs, info)
+            robot = [env.home.world.pose[:2].copy()]
+            person = [env.task.person.pos.copy()] if hasattr(env.task, "person") else None
+            total, done = 0.0, False
+            while not done:
+                obs, r, term, trunc, info = env.step(ag.act(obs, info))
+                total += r
+                done = term or trunc
+                robot.append(env.home.world.pose[:2].copy())
+                if person is not None:
+                    person.append(env.task.person.pos.copy())
+            m = info["metrics"]
+            rows.append({"episode": i, "episode_id": env.episode.episode_id, "scene": env.episode.scene,
+                         "reward": round(total, 4), **m})
+            if maps:
+                _write_map(env, np.array(robot), None if person is None else np.array(person),
+                           Path(maps) / f"episode_{i:04d}.png", spec, m)
+    finally:
+        env.close()
+    res = {"task": spec.cli, "agent": agent, "episodes": len(rows), "split": split, "seed": seed}
+    for key in spec.metrics:
+        col = "success" if key == "sr" else key
+        res[key] = (rate_ci95 if key in spec.rates else mean_ci95)(r[col] for r in rows)
+    if out:
+        p = Path(out) / f"{spec.cli}_{agent}_{split}_s{seed}.csv"
+        _write_csv(p, rows)
+        res["csv"] = str(p)
+    return res
+
+
+def _write_map(env, robot, person, out: Path, spec: TaskSpec, m: dict) -> None:
+    from sonicverse_core.scene.topdown import draw_map
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    markers = {"robot start": (robot[0, 0], robot[0, 1], "g^"), "robot end": (robot[-1, 0], robot[-1, 1], "ks")}
+    paths = [robot]
+    if person is not None:
+        paths.append(person)
+        markers["person end"] = (person[-1, 0], person[-1, 1], "r*")
+    elif hasattr(env.task, "goals"):
+        g = env.task.goals[0]
+        markers["goal"] = (g[0], g[1], "r*")
+    title = f"{spec.cli} {env.episode.episode_id}: " + ", ".join(
+        f"{k} {m[k]:.2f}" for k in spec.metrics if k in m and isinstance(m[k], (int, float)))
+    draw_map(env.home.scene, out, grid=env.home.world.grid, paths=paths, markers=markers, title=title[:100],
+             path_labels=["robot", "person"][:len(paths)])
+
+
+def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, participant: dict, task_kwargs: dict,
+                progress: bool) -> dict:
+    from sonicverse_core.tasks.orientation import SimulatedListener, learning_curve
+
+    cls = spec.load()
+    kw = dict(task_kwargs)
+    kw.setdefault("trials", trials)
+    runner = cls(**kw)
+    listener = SimulatedListener(**participant)
+    rows = runner.run(listener, np.random.default_rng(seed))
+    res = {"task": spec.cli, "agent": agent, "seed": seed, **runner.summary(rows)}
+    if out:
+        d = Path(out)
+        p = d / f"{spec.cli}_{agent}_s{seed}.csv"
+        _write_csv(p, rows)
+        png = d / f"{spec.cli}_{agent}_s{seed}_learning_curve.png"
+        learning_curve(rows, png)
+        res["csv"], res["learning_curve"] = str(p), str(png)
+    return res

@@ -1,0 +1,301 @@
+"""Task modules: the registry, the privileged channel, the person, speaker following, orientation training, the
+`task` command."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+import sonicverse_core.tasks as T
+from sonicverse_core.errors import ConfigError
+from sonicverse_core.tasks.registry import TASKS, task_spec
+
+HOME = ("builtin:apartment?seed=6000",)
+
+
+# --- registry ---------------------------------------------------------------------------------------------------
+def test_every_task_is_listed_once_and_everything_reads_the_registry():
+    import gymnasium as gym
+
+    from agents import IMPLEMENTATIONS, make_agent
+    from app.tasks.evaluate import TASK_NAMES
+
+    clis = [s.cli for s in TASKS.values()]
+    ids = [s.env_id for s in TASKS.values() if s.env_id]
+    assert len(set(clis)) == len(clis) and len(set(ids)) == len(ids)
+    assert set(T.ENV_IDS.values()) == set(ids)
+    for s in TASKS.values():
+        assert task_spec(s.cli) is task_spec(s.name) is s
+        if s.env_id:
+            assert s.env_id in gym.registry and gym.registry[s.env_id].max_episode_steps == s.max_steps
+            for a in s.agents:  # every agent the registry names exists for the task
+                assert make_agent(a, np.random.default_rng(0), s.name) is not None
+                assert a in IMPLEMENTATIONS[s.name]
+        assert s.metrics and set(s.rates) <= set(s.metrics)
+    assert set(TASK_NAMES) == {"AudioGoal", "AudioPointGoal", "SemanticAudioNav"}
+    with pytest.raises(ConfigError, match="unknown task"):
+        task_spec("voice-teleport")
+    with pytest.raises(ConfigError, match="unknown agent 'gan' for speaker-following"):
+        make_agent("gan", None, "speaker-following")
+    with pytest.raises(ConfigError, match="no robot env"):
+        T.make_env("orientation-training")
+    with pytest.raises(ConfigError, match="no option"):
+        T.make_env("AudioGoal", person_speed=3)
+
+
+class _Blind:
+    """An env seen through the Gymnasium interface only: privileged() fails the test."""
+
+    def __init__(self, env):
+        self._env = env
+
+    def privileged(self):
+        raise AssertionError("a sensor-only agent read privileged state")
+
+    def __getattr__(self, k):
+        return getattr(self._env, k)
+
+
+@pytest.mark.parametrize("task,agent", [("SpeakerFollowing", "scripted"), ("AudioGoal", "gan"),
+                                        ("SpeakerFollowing", "random")])
+def test_sensor_agents_never_read_privileged_state(task, agent):
+    from agents import make_agent
+
+    env = T.make_env(task, scenes=HOME, max_steps=40)
+    obs, info = env.reset(seed=1)
+    ag = make_agent(agent, np.random.default_rng(0), task)
+    blind = _Blind(env)
+    ag.reset(blind, obs, info)
+    for _ in range(40):
+        obs, r, term, trunc, info = env.step(ag.act(obs, info))
+        if term or trunc:
+            break
+    env.close()
+
+
+# --- the person -------------------------------------------------------------------------------------------------
+def _world():
+    from sonicverse_core.scene.spec import load_scene
+    from sonicverse_core.world import World
+
+    return World(load_scene(HOME[0]))
+
+
+def test_person_walks_navigable_paths_at_its_speed_pauses_and_stops():
+    from sonicverse_core.world.person import Person, PersonConfig
+
+    w = _world()
+    rng = np.random.default_rng(3)
+    route = w.grid.sample(rng, 3)
+    p = Person(w, route, PersonConfig(pause_s=(1.0, 1.0), turn_deg_s=1e6), speed=1.2)
+    pos, moving = [p.pos.copy()], []
+    while not p.finished and p.t < 120:
+        p.advance(0.1)
+        pos.append(p.pos.copy())
+        moving.append(p.walking)
+    pos = np.array(pos)
+    assert p.finished and np.allclose(p.pos, route[-1], atol=1e-6)
+    assert np.all(w.grid.is_navigable(pos))  # on the floor the whole way (through doors)
+    steps = np.linalg.norm(np.diff(pos, axis=0), axis=1)
+    assert steps.max() <= 1.2 * 0.1 + 1e-9  # never faster than its walking speed
+    assert p.walked == pytest.approx(p.length, rel=1e-6)
+    # walking time = length / speed, plus the pause at the middle place
+    assert p.stop_time == pytest.approx(p.length / 1.2 + 1.0, abs=0.25)
+    assert abs(p.mouth[2] - (w.base.z_floor + 1.58)) < 1e-9
+
+
+def test_person_speech_alternates_talk_and_silence():
+    from sonicverse_core.world.person import PersonConfig, speech_track
+
+    cfg = PersonConfig(talk_s=(2.0, 3.0), silence_s=(2.5, 4.0))
+    x, spans = speech_track(40.0, 16000, np.random.default_rng(0), cfg, "en-us")
+    assert x.dtype == np.float32 and np.all(np.isfinite(x)) and np.abs(x).max() <= cfg.speech_peak + 1e-6
+    assert spans[0][0] == 0.0  # it starts by talking
+    gaps = [b[0] - a[1] for a, b in zip(spans, spans[1:])]
+    long_gaps = [g for g in gaps if g > 1.0]
+    assert long_gaps and all(2.5 - 1e-6 <= g <= 4.0 + 0.6 + 1e-6 for g in long_gaps)  # silences of 2.5-4 s
+    for a, b in spans:  # each utterance is where the track has sound, and between them it is quiet
+        assert np.abs(x[int(a * 16000):int(b * 16000)]).max() > 0.1
+    quiet = np.ones(len(x), bool)
+    for a, b in spans:
+        quiet[int(a * 16000):int(b * 16000) + 1] = False
+    assert np.abs(x[quiet]).max() == 0.0
+
+
+def test_the_robot_collides_with_the_person_and_may_move_away():
+    w = _world()
+    x, y = w.grid.sample(np.random.default_rng(5), 1)[0]
+    w.place_robot(x, y, 0.0)
+    w.bodies["person"] = (np.array([x + 0.6, y]), 0.22)  # 0.6 m ahead
+    for _ in range(20):
+        w.drive([1.0, 1.0], 0.1)
+    gap = math.hypot(w.pose[0] - (x + 0.6), w.pose[1] - y)
+    assert w.bumped and gap >= 0.22 + w.robot.radius - 1e-9
+    w.bodies["person"] = (np.array([w.pose[0] + 0.1, w.pose[1]]), 0.22)  # the person stepped onto the robot
+    before = w.pose[0]
+    w.drive([-1.0, -1.0], 0.1)  # backing away is allowed
+    assert w.pose[0] < before - 0.02
+
+
+def test_the_robots_camera_sees_the_person():
+    env = T.make_env("SpeakerFollowing", scenes=HOME, sensors=("depth", "rgb"))
+    env.reset(seed=2)
+    w, p = env.home.world, env.task.person
+    w.bodies = {}
+    # put the person 1.5 m in front of the robot's camera (wherever the robot stands, facing the person)
+    d = p.pos - w.pose[:2]
+    yaw = math.degrees(math.atan2(d[1], d[0]))
+    w.pose = np.array([*w.pose[:2], yaw])
+    env.move_actor("person", p.pose)
+    img = env._camera().render(*w.camera)
+    centre = img["depth"][env.cfg.height // 2 - 20, env.cfg.width // 2]  # above the horizon: the torso
+    dist = float(np.hypot(*d))
+    assert abs(centre - (dist - 0.8 * p.cfg.radius)) < 0.15
+    away = np.eye(4)
+    away[:3, 3] = (100.0, 100.0, 100.0)
+    env.move_actor("person", away)
+    far = env._camera().render(*w.camera)["depth"][env.cfg.height // 2 - 20, env.cfg.width // 2]
+    assert far == 0 or far > centre + 0.3  # without the person the ray goes on to the wall
+    env.close()
+
+
+# --- speaker following ------------------------------------------------------------------------------------------
+def _episode(agent, seed, **kw):
+    from agents import make_agent
+
+    env = T.make_env("SpeakerFollowing", scenes=HOME, **kw)
+    obs, info = env.reset(seed=seed)
+    ag = make_agent(agent, np.random.default_rng(seed), "SpeakerFollowing")
+    ag.reset(env, obs, info)
+    done = False
+    while not done:
+        obs, r, term, trunc, info = env.step(ag.act(obs, info))
+        done = term or trunc
+    env.close()
+    return info["metrics"], env
+
+
+def test_speaker_following_oracle_keeps_close_and_catches():
+    m, env = _episode("oracle", 0)
+    assert m["catch_success"] == 1.0 and m["person_finished"] == 1.0
+    assert m["time_in_band"] >= 0.8 and m["lost_s"] == 0.0
+    d = np.array(env.task.distances)
+    assert m["time_in_band"] == pytest.approx(np.mean((d >= 1.0) & (d <= 2.5)))
+    assert m["mean_distance_m"] == pytest.approx(d.mean())
+    assert d[-1] <= 1.0  # caught: within 1 m and stopped
+
+
+def test_speaker_following_episode_definition():
+    from sonicverse_core.tasks.following import FollowEpisode
+
+    env = T.make_env("SpeakerFollowing", scenes=HOME, sensors=("pose",))
+    for seed in range(4):
+        env.reset(seed=seed)
+        ep, w, p = env.episode, env.home.world, env.task.person
+        assert 1.2 - 0.05 <= env.task.dist <= 2.2 + 0.05  # starts close, behind the person
+        assert 6.0 <= p.length <= 25.0 + 1.0 and len(ep.route) >= 3
+        rooms = [next((r.name for r in w.scene.rooms if r.contains(np.array([q]))[0]), None) for q in ep.route]
+        assert all(a != b for a, b in zip(rooms, rooms[1:]))  # each place in another room
+        assert FollowEpisode.from_json(ep.to_json()) == ep
+    # the catch rule: next to the stopped person, standing still -> success, +10
+    env.reset(seed=0)
+    p, w = env.task.person, env.home.world
+    while not p.finished:
+        p.advance(0.5)
+    w.bodies = {}
+    for q in w.grid.sample(np.random.default_rng(0), 400):
+        if 0.5 < np.hypot(*(q - p.pos)) < 0.8 and w.grid.line_of_sight(q, p.pos):
+            w.place_robot(q[0], q[1], 0.0)
+            break
+    obs, r, term, trunc, info = env.step(np.zeros(2, np.float32))
+    assert term and info["is_success"] and r > 9.0
+    assert info["metrics"]["catch_success"] == 1.0
+
+
+def test_random_follower_loses_the_person():
+    m, _ = _episode("random", 1)
+    assert m["catch_success"] == 0.0
+
+
+# --- orientation training ---------------------------------------------------------------------------------------
+def test_simulated_participant_matches_its_analytic_errors():
+    """10 degrees of noise: mean |error| after resolving reversals = 10 sqrt(2/pi) = 7.98; reversals at 10%."""
+    from sonicverse_core.tasks.orientation import OrientationTraining, SimulatedListener
+
+    ot = OrientationTraining(trials=1000, staircase="none", render=False)
+    rows = ot.run(SimulatedListener(noise_deg=10.0, front_back=0.1), np.random.default_rng(0))
+    s = ot.summary(rows)
+    assert abs(s["azimuth_error_deg"]["mean"] - 10 * math.sqrt(2 / math.pi)) <= 1.5
+    assert abs(s["front_back_confusion_rate"]["mean"] - 0.1) <= 0.03
+    assert s["trials"] == 1000
+    # a participant who learns gets better
+    ot2 = OrientationTraining(trials=400, staircase="none", render=False)
+    rows2 = ot2.run(SimulatedListener(noise_deg=10.0, front_back=0.2, learning_rate=0.01), np.random.default_rng(1))
+    e = np.array([r["azimuth_error_deg"] for r in rows2])
+    assert e[-100:].mean() < 0.6 * e[:100].mean()
+
+
+def test_staircase_follows_levitt():
+    from sonicverse_core.tasks.orientation import Staircase
+
+    s = Staircase(1.0, 0.5, 0.01, 2.0, harder_is_lower=True, down=2)
+    assert s.update(True) == 1.0 and s.update(True) == 0.5  # two right: harder
+    assert s.update(False) == 1.0  # one wrong: easier (a reversal)
+    s.update(True), s.update(True)  # harder again (a reversal)
+    assert s.reversals == [0.5, 1.0] and s.threshold == pytest.approx(math.sqrt(0.5))
+    # on a simulated observer the 1-up-2-down track converges where p(correct) = 0.707
+    rng = np.random.default_rng(0)
+    s = Staircase(1.0, 0.8, 0.001, 10.0, harder_is_lower=True, down=2)
+    p_correct = lambda x: 1 / (1 + (0.2 / x) ** 3)  # noqa: E731 - a psychometric function
+    for _ in range(3000):
+        s.update(rng.random() < p_correct(s.level))
+    levels = np.array(s.history[500:])
+    assert abs(np.mean([p_correct(x) for x in levels]) - 0.707) < 0.05
+
+
+def test_orientation_stimuli_are_rendered_on_the_right_side():
+    """The rendered stimulus's interaural delay (direct sound) has the target's side and Woodworth's size."""
+    from sonicverse_core.tasks.orientation import OrientationTraining, _itd_us
+
+    ot = OrientationTraining(trials=1)
+    for sound in ("straight_chair/0", "toilet/0"):
+        for az in (60.0, -60.0, 120.0, -120.0):
+            audio = ot.render({"sound": sound, "azimuth": az, "elevation": 0.0, "distance": 2.0}, 0.5)
+            assert np.all(np.isfinite(audio)) and np.abs(audio).max() <= 1.0
+            lat = math.radians(90 - abs(abs(az) - 90))  # lateral angle
+            woodworth = 0.0875 / 343.0 * (lat + math.sin(lat)) * 1e6
+            itd = _itd_us(audio, 16000)
+            assert np.sign(itd) == np.sign(az) and abs(abs(itd) - woodworth) < 130, (sound, az, itd)
+
+
+def test_walk_trials_and_scoring():
+    from sonicverse_core.tasks.orientation import OrientationTraining, SimulatedListener, score_turn
+
+    assert score_turn(30.0, 150.0) == (0.0, True)  # a pure front-back confusion
+    assert score_turn(90.0, 100.0) == (10.0, False)  # on the axis: never a reversal
+    assert score_turn(10.0, -5.0) == (15.0, False)
+    ot = OrientationTraining(trials=30, mode="walk", render=False, staircase="none")
+    rows = ot.run(SimulatedListener(noise_deg=5.0, front_back=0.0), np.random.default_rng(0))
+    s = ot.summary(rows)
+    assert s["walk_success"]["mean"] >= 0.9 and 0.7 <= s["path_efficiency"]["mean"] <= 1.0
+
+
+def test_task_run_command(tmp_path, capsys):
+    from app.cli import main
+
+    assert main(["task", "run", "orientation-training", "--trials", "12", "--mode", "mixed", "--blocks", "2",
+                 "--out", str(tmp_path), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    for k in TASKS["OrientationTraining"].metrics + ("trials",):
+        assert k in res
+    assert res["trials"] == 24 and (tmp_path / "orientation-training_simulated_s0_learning_curve.png").stat().st_size
+    assert len((tmp_path / "orientation-training_simulated_s0.csv").read_text().splitlines()) == 25
+    assert main(["task", "run", "speaker-following", "--agent", "oracle", "--episodes", "1", "--max-steps", "60",
+                 "--homes", "1", "--out", str(tmp_path), "--maps", str(tmp_path / "maps"), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert set(TASKS["SpeakerFollowing"].metrics) <= set(res) and res["episodes"] == 1
+    assert (tmp_path / "maps" / "episode_0000.png").stat().st_size > 0
+    assert main(["task", "run", "speaker-following", "--agent", "gan"]) == 2
+    assert "unknown agent" in capsys.readouterr().err
+    assert main(["task", "list", "--json"]) == 0
+    assert {r["task"] for r in json.loads(capsys.readouterr().out)} == {s.cli for s in TASKS.values()}
