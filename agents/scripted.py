@@ -142,45 +142,11 @@ class GanAgent(Agent):
 
     def _itd(self, audio: np.ndarray) -> tuple[float, float]:
         """(interaural delay s, left leads > 0; energy)."""
-        l, r = audio[0].astype(np.float64), audio[1].astype(np.float64)
-        e = float(np.mean(l * l + r * r))
-        if e < 1e-12:
-            return 0.0, 0.0
-        lag = int(math.ceil(self.ITD_MAX * self.sr)) + 1
-        n = len(l)
-        L, R = np.fft.rfft(l, 2 * n), np.fft.rfft(r, 2 * n)
-        cc = np.fft.irfft(R * np.conj(L) / (np.abs(R * np.conj(L)) + 1e-12), 2 * n)  # GCC-PHAT: r lags l by k
-        cc = np.concatenate([cc[-lag:], cc[: lag + 1]])
-        k = int(np.argmax(cc))
-        frac = 0.0
-        if 0 < k < len(cc) - 1:
-            a, b, c = cc[k - 1], cc[k], cc[k + 1]
-            den = a - 2 * b + c
-            frac = 0.5 * (a - c) / den if abs(den) > 1e-12 else 0.0
-        return (k - lag + frac) / self.sr, e
+        return itd_gcc_phat(audio, self.sr, self.ITD_MAX)
 
     def _map_depth(self, obs, p, yaw):
-        if "depth" not in obs:
-            return
-        d = obs["depth"][..., 0]
-        H, W = d.shape
-        rows = np.arange(0, H, 4)
-        cols = np.arange(0, W, 4)
-        z = d[np.ix_(rows, cols)]
-        ok = z > 0.1
-        if not np.any(ok):
-            return
-        u = (cols[None, :] - W / 2 + 0.5) / self._fx
-        v = (rows[:, None] - H / 2 + 0.5) / self._fx
-        fwd, left, up = z, -u * z, -v * z
-        height = self.robot.camera_height + up
-        obst = ok & (height > 0.08) & (height < 0.6)
-        a = math.radians(yaw)
-        wx = p[0] + math.cos(a) * fwd - math.sin(a) * left
-        wy = p[1] + math.sin(a) * fwd + math.cos(a) * left
-        idx = self._cell(np.stack([wx[obst], wy[obst]], 1))
-        good = (idx >= 0).all(1) & (idx < self.SIZE).all(1)
-        np.add.at(self.occ, (idx[good, 0], idx[good, 1]), 1)
+        if "depth" in obs:
+            map_depth(self.occ, obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height, self.CELL)
 
     def _cell(self, xy):
         return np.floor(np.asarray(xy) / self.CELL).astype(int) + self.SIZE // 2
@@ -262,6 +228,83 @@ class GanAgent(Agent):
         while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
             self.k += 1
         return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt))
+
+
+def gcc_phat(audio: np.ndarray, sr: int, max_itd: float) -> tuple[np.ndarray, float]:
+    """(generalised cross-correlation with phase transform over lags -L..L, L = ceil(max_itd * sr) + 1; energy).
+    A peak at lag k > 0 means the right ear hears the sound k samples after the left (the left ear leads)."""
+    l, r = audio[0].astype(np.float64), audio[1].astype(np.float64)
+    e = float(np.mean(l * l + r * r))
+    lag = int(math.ceil(max_itd * sr)) + 1
+    if e < 1e-12:
+        return np.zeros(2 * lag + 1), 0.0
+    n = len(l)
+    X = np.fft.rfft(r, 2 * n) * np.conj(np.fft.rfft(l, 2 * n))
+    cc = np.fft.irfft(X / (np.abs(X) + 1e-12), 2 * n)
+    return np.concatenate([cc[-lag:], cc[: lag + 1]]), e
+
+
+def onset_gcc_phat(audio: np.ndarray, tail: np.ndarray, sr: int, max_itd: float, frame: int = 320,
+                   hop: int = 160) -> tuple[np.ndarray, float]:
+    """GCC-PHAT weighted towards onsets (the precedence effect: the first wavefront carries the direction, the
+    room's reflections follow): frames of ``frame`` samples every ``hop`` over ``tail`` (the end of the previous
+    block, at least ``frame`` samples) + ``audio``; each frame's GCC is weighted by how much its energy rose over the
+    two hops before it (log10 ratio above 0.3, i.e. +3 dB). Returns (weighted sum over lags -L..L, total weight)."""
+    y = np.concatenate([tail, audio], axis=1).astype(np.float64)
+    starts = np.arange(tail.shape[1] - frame + hop, y.shape[1] - frame + 1, hop)
+    lag = int(math.ceil(max_itd * sr)) + 1
+    if len(starts) == 0:
+        return np.zeros(2 * lag + 1), 0.0
+    fr = np.stack([y[:, s:s + frame] for s in starts], 1)
+    e = (fr ** 2).mean(axis=(0, 2))
+    before = np.array([(y[:, max(s - 2 * hop, 0):s] ** 2).mean() for s in starts]) + 1e-12
+    w = np.maximum(0.0, np.log10(e / before + 1e-12) - 0.3) * (e > 1e-10)
+    if not np.any(w > 0):
+        return np.zeros(2 * lag + 1), 0.0
+    X = np.fft.rfft(fr[1], 2 * frame) * np.conj(np.fft.rfft(fr[0], 2 * frame))
+    cc = np.fft.irfft(X / (np.abs(X) + 1e-12), 2 * frame)
+    cc = np.concatenate([cc[:, -lag:], cc[:, : lag + 1]], axis=1)
+    return (w[:, None] * cc).sum(0), float(w.sum())
+
+
+def itd_gcc_phat(audio: np.ndarray, sr: int, max_itd: float) -> tuple[float, float]:
+    """(interaural delay s, left leads > 0, at the GCC-PHAT peak with parabolic interpolation; energy)."""
+    cc, e = gcc_phat(audio, sr, max_itd)
+    if e == 0.0:
+        return 0.0, 0.0
+    lag = (len(cc) - 1) // 2
+    k = int(np.argmax(cc))
+    frac = 0.0
+    if 0 < k < len(cc) - 1:
+        a, b, c = cc[k - 1], cc[k], cc[k + 1]
+        den = a - 2 * b + c
+        frac = 0.5 * (a - c) / den if abs(den) > 1e-12 else 0.0
+    return (k - lag + frac) / sr, e
+
+
+def map_depth(occ: np.ndarray, depth: np.ndarray, p, yaw: float, fx: float, camera_height: float, cell: float,
+              stride: int = 4) -> None:
+    """Count obstacle hits (points 0.08-0.6 m above the floor) of a depth image into an occupancy grid ``occ``
+    (cells of ``cell`` m, centred on the odometry origin) seen from pose ``p`` (x, y), ``yaw`` degrees."""
+    H, W = depth.shape
+    rows = np.arange(0, H, stride)
+    cols = np.arange(0, W, stride)
+    z = depth[np.ix_(rows, cols)]
+    ok = z > 0.1
+    if not np.any(ok):
+        return
+    u = (cols[None, :] - W / 2 + 0.5) / fx
+    v = (rows[:, None] - H / 2 + 0.5) / fx
+    fwd, left, up = z, -u * z, -v * z
+    height = camera_height + up
+    obst = ok & (height > 0.08) & (height < 0.6)
+    a = math.radians(yaw)
+    wx = p[0] + math.cos(a) * fwd - math.sin(a) * left
+    wy = p[1] + math.sin(a) * fwd + math.cos(a) * left
+    size = occ.shape[0]
+    idx = np.floor(np.stack([wx[obst], wy[obst]], 1) / cell).astype(int) + size // 2
+    good = (idx >= 0).all(1) & (idx < size).all(1)
+    np.add.at(occ, (idx[good, 0], idx[good, 1]), 1)
 
 
 def _grid_path(blocked: np.ndarray, start, goal):

@@ -22,8 +22,23 @@ DEFAULT_HOMES = {"train": 16, "val": 4, "test": 8}
 SOUND_SECONDS = (4.0, 20.0)
 
 
+def _tuples(v):
+    return tuple(_tuples(x) for x in v) if isinstance(v, list) else v
+
+
+class JsonRecord:
+    """``to_json`` / ``from_json`` for frozen episode dataclasses (JSON lists come back as tuples)."""
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str):
+        return cls(**{k: _tuples(v) for k, v in json.loads(text).items()})
+
+
 @dataclass(frozen=True)
-class Episode:
+class Episode(JsonRecord):
     episode_id: str
     scene: str  # scene spec
     split: str
@@ -36,16 +51,6 @@ class Episode:
     source_gain: float = 1.0
     geodesic: float = 0.0  # m from start to the nearest goal
     extra: dict = field(default_factory=dict)
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self))
-
-    @staticmethod
-    def from_json(text: str) -> "Episode":
-        d = json.loads(text)
-        d["start"] = tuple(d["start"])
-        d["goals"] = tuple(tuple(g) for g in d["goals"])
-        return Episode(**d)
 
 
 def homes(split: str, n: int | None = None) -> list[str]:

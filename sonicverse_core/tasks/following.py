@@ -23,14 +23,13 @@ Person`: position, yaw, route, ``finished``, ``talking()``), ``distance`` (geode
 """
 from __future__ import annotations
 
-import json
-import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from sonicverse_core.errors import ConfigError
 from sonicverse_core.tasks.base import Task
+from sonicverse_core.tasks.episodes import JsonRecord
 from sonicverse_core.world.person import Person, PersonConfig, body_mesh, polyline_points, speech_track
 
 BAND = (1.0, 2.5)
@@ -38,7 +37,7 @@ LOST = 5.0
 
 
 @dataclass(frozen=True)
-class FollowEpisode:
+class FollowEpisode(JsonRecord):
     episode_id: str
     scene: str
     split: str
@@ -48,16 +47,6 @@ class FollowEpisode:
     voice: str
     speech_seed: int
     extra: dict = field(default_factory=dict)
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self))
-
-    @staticmethod
-    def from_json(text: str) -> "FollowEpisode":
-        d = json.loads(text)
-        d["start"] = tuple(d["start"])
-        d["route"] = tuple(tuple(p) for p in d["route"])
-        return FollowEpisode(**d)
 
 
 class SpeakerFollowing(Task):
