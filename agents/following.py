@@ -2,19 +2,23 @@
 
 * ``oracle`` (privileged: ``env.privileged()["person"]`` and ``["world"]``): drives the geodesic shortest path to
   the person and holds 1.5 m while they walk; once they have stopped, closes to 0.7 m and stops.
-* ``scripted`` (the robot's own sensors: binaural audio, depth, odometry pose, bump): a belief over where the person
-  is, on a 0.1 m grid of the robot's odometry frame, starting near the robot (the task starts the two 1.2-2.2 m
-  apart). Every step the belief spreads as far as a person walks (1.4 m/s, a Gaussian); every heard step multiplies
-  it by the likelihood of each place given the GCC-PHAT interaural cross-correlation: the delay each place would
-  cause (lateral angle, shrunk by the mouth's elevation above the microphones). One bearing is ambiguous (front or
-  back, and any distance); as the robot turns and moves, the bearings from different poses intersect: the head-turn
-  cue (Wallach) and triangulation in one rule. Through silences the belief only spreads: the memory of where the
-  voice was last heard. Depth builds an occupancy map (people do not stand in what is solid; the planner, Dijkstra
-  on the map, finds the way round); the robot turns on the spot until the belief's mass beyond 1 m is concentrated
-  in one direction, then drives that way, as far as the voice's level says (inverse square against the level heard
-  at the start), keeping 1.4 m, closing to 0.8 m and stopping when the level has stayed put for 3 s. Its bearings
-  use onsets only (GCC-PHAT weighted by how much each 20 ms frame's energy rose: the precedence effect), because in
-  these reverberant homes a whole block's cross-correlation mostly points at reflections.
+* ``scripted`` (the robot's own sensors: binaural audio, depth, odometry pose, bump): two beliefs over where the
+  person is, on a 0.1 m grid of the robot's odometry frame, both starting near the robot (the task starts the two
+  1.2-2.2 m apart). Every step they spread as far as a person walks (1.4 m/s, a Gaussian); every heard step
+  multiplies them by the likelihood of each place given the interaural cross-correlation (GCC-PHAT weighted towards
+  onsets: the precedence effect; in these reverberant homes a whole block's cross-correlation mostly points at
+  reflections), i.e. the delay each place would cause (its lateral angle, shrunk by the mouth's elevation above the
+  microphones). One bearing is ambiguous (front or back, any distance); as the robot turns and moves, bearings from
+  different poses intersect: the head-turn cue (Wallach) and triangulation in one rule. The camera adds what it sees:
+  a narrow thing at chest and head height standing in front of its surroundings (:func:`detect_people`), accepted
+  only where the audio-only belief may put the voice, is fused into the acting belief and followed directly (1.4 m,
+  closing to 0.7 m and stopping once it has stayed put for 3 s). Otherwise the robot drives towards the bearing of
+  the acting belief's mass beyond 1 m, at least 1.5 m or as far as the voice's level says (inverse square against
+  the level at the start; only the camera makes it stop: in a reverberant home the level says little about
+  distance); when that mass is spread it goes where the voice was last placed (memory through silences, 8 s) or
+  turns on the spot listening. Depth and bumps build an occupancy map; a planner (Dijkstra on it) finds the way round.
+  A person just lost from view (a door, a corner) is looked for 1 m beyond where they were last seen, along their
+  motion. ``mode`` says which of these it did last ("seen", "lost-sight", "heard", "memory", "unsure").
 * ``random``: uniform wheel velocities (:class:`agents.scripted.RandomAgent`).
 """
 from __future__ import annotations
@@ -89,10 +93,43 @@ class OracleFollower(Agent):
         return cand[int(np.argmin(np.linalg.norm(cand - p, axis=1)))]
 
 
+def detect_people(depth: np.ndarray, fx: float, camera_height: float, band=(1.0, 1.65), jump: float = 0.4,
+                  width=(0.2, 0.75)) -> list[tuple[float, float]]:
+    """People in a depth image: narrow things at chest and head height (``band``, m above the floor) that stand
+    ``jump`` m or more in front of what is beside them on both sides, ``width`` m wide. Returns [(bearing degrees,
+    left positive, distance m)]. Walls, tables and sofas fail the test (too wide, or too low); a door's edge or a
+    shelf seen end-on can pass it, which is why the follower gates detections by the voice's direction."""
+    H, W = depth.shape
+    v = (np.arange(H)[:, None] - H / 2 + 0.5) / fx
+    h = camera_height - v * depth
+    inband = (depth > 0.1) & (h >= band[0]) & (h <= band[1])
+    col = np.where(inband, depth, np.inf).min(axis=0)  # nearest thing at that height, per column
+    valid = np.isfinite(col)
+    out = []
+    u = 0
+    while u < W:
+        if not valid[u]:
+            u += 1
+            continue
+        a = u
+        while u + 1 < W and valid[u + 1] and abs(col[u + 1] - col[u]) < 0.15:
+            u += 1
+        b = u
+        z = float(np.median(col[a:b + 1]))
+        left = col[a - 1] if a > 0 else np.inf
+        right = col[b + 1] if b + 1 < W else np.inf
+        metres = (b - a + 1) * z / fx
+        if a > 0 and b + 1 < W and left - z >= jump and right - z >= jump and width[0] <= metres <= width[1]:
+            uc = (a + b + 1) / 2
+            ang = math.degrees(math.atan(-(uc - W / 2) / fx))
+            out.append((ang, z / math.cos(math.radians(ang))))
+        u = b + 1
+    return out
+
+
 class ScriptedFollower(Agent):
-    """Follows the voice from the robot's own sensors: a grid belief over where the person is (odometry frame),
-    predicted by a walker's diffusion and updated with the GCC-PHAT interaural cross-correlation of every heard
-    step (see the module's docstring)."""
+    """Follows the voice (and what the camera sees where the voice is) from the robot's own sensors; see the
+    module's docstring."""
 
     name = "scripted"
     CELL = 0.1
@@ -102,7 +139,7 @@ class ScriptedFollower(Agent):
     SHARPNESS = 4.0  # likelihood exp(SHARPNESS * (normalised GCC - 1)) per heard step
     WALK = 1.4  # m/s: the fastest a person walks (the belief's diffusion while the voice is heard or not)
     FOLLOW = 1.4
-    CLOSE = 0.8
+    CLOSE = 0.7
 
     def reset(self, env, obs, info):
         super().reset(env, obs, info)
@@ -113,14 +150,19 @@ class ScriptedFollower(Agent):
         self.cx, self.cy = np.meshgrid(c, c, indexing="ij")  # cell centres, [ix, iy]
         r = np.hypot(self.cx, self.cy)
         # the prior: the person calls the robot from nearby (the task starts 1.2-2.2 m apart)
-        self.belief = np.where((r > 0.8) & (r < 3.0), 1.0, 1e-3)
-        self.belief /= self.belief.sum()
+        prior = np.where((r > 0.8) & (r < 3.0), 1.0, 1e-3)
+        # two beliefs: [0] from audio and vision (what the robot acts on), [1] from audio alone (what judges
+        # whether a thing the camera sees is the talker: vision must not confirm itself)
+        self.belief = np.stack([prior, prior]) / prior.sum()
         self.noise = None
         self.tail = np.zeros((2, 480))
         self.heard = 0
-        self.est_hist: deque = deque(maxlen=int(3.0 / self.dt))
         self.levels: deque = deque(maxlen=12)
         self.level0 = None
+        self.last_seen = None
+        self.memory, self.memory_t = None, -1e9
+        self.sightings: deque = deque(maxlen=int(5.0 / self.dt))
+        self.t = 0.0
         self.path, self.k, self.plan_at = None, 0, 0
         self.since_heard = 0.0
 
@@ -136,10 +178,10 @@ class ScriptedFollower(Agent):
         from scipy.ndimage import gaussian_filter
 
         sigma = self.WALK * self.dt / self.CELL
-        self.belief = gaussian_filter(self.belief, sigma, mode="constant", truncate=3.0)
-        self.belief[self.occ >= 3] *= 0.2  # people do not stand inside what the camera saw as solid
+        self.belief = gaussian_filter(self.belief, (0, sigma, sigma), mode="constant", truncate=3.0)
+        self.belief[:, self.occ >= 3] *= 0.2  # people do not stand inside what the camera saw as solid
         self.belief += 1e-9
-        self.belief /= self.belief.sum()
+        self.belief /= self.belief.sum(axis=(1, 2), keepdims=True)
 
     def _update(self, cc: np.ndarray, weight: float, p, yaw: float):
         lag = (len(cc) - 1) // 2
@@ -151,8 +193,8 @@ class ScriptedFollower(Agent):
         expected = self.ITD_MAX * np.sin(az) * cos_el * self.sr + lag  # fractional index into cc
         lik = np.interp(expected.ravel(), np.arange(len(cc)), ccn).reshape(expected.shape)
         self.belief *= np.exp(self.SHARPNESS * min(weight, 2.0) * (lik - 1.0))
-        self.belief[d < 0.45] *= 0.5  # nobody stands on the robot
-        self.belief /= self.belief.sum()
+        self.belief[:, d < 0.45] *= 0.5  # nobody stands on the robot
+        self.belief /= self.belief.sum(axis=(1, 2), keepdims=True)
 
     # --- acting -----------------------------------------------------------------------------------------------
     def _plan(self, p, goal):
@@ -169,9 +211,19 @@ class ScriptedFollower(Agent):
     def act(self, obs, info):
         from agents.scripted import map_depth, onset_gcc_phat
 
+        self.t += self.dt
         p, yaw = self._pose(obs)
         if "depth" in obs:
             map_depth(self.occ, obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height, self.CELL)
+        self.bumped = obs.get("bump") is not None and obs["bump"][0] > 0
+        if self.bumped:  # something the camera missed is in front: put it on the map
+            for da in (-30.0, 0.0, 30.0):
+                a = math.radians(yaw + da)
+                q = p + (self.robot.radius + 0.08) * np.array([math.cos(a), math.sin(a)])
+                c = self._cell(q)
+                if np.all((c >= 0) & (c < self.SIZE)):
+                    self.occ[c[0], c[1]] += 3
+            self.path = None
         audio = obs["audio"]
         cc, weight = onset_gcc_phat(audio, self.tail, self.sr, self.ITD_MAX)
         self.tail = audio[:, -self.tail.shape[1]:].astype(np.float64)
@@ -185,42 +237,110 @@ class ScriptedFollower(Agent):
             self.since_heard = 0.0
         else:
             self.since_heard += self.dt
+        seen = self._see(obs, p, yaw) if "depth" in obs else None
+        if seen is not None:
+            self.mode = "seen"
+            self.sightings.append((self.t, seen))
+            return self._follow_seen(seen, p, yaw)
+        lost = self._where_lost()
+        if lost is not None and np.linalg.norm(lost - p) > 0.4:
+            self.mode = "lost-sight"  # just lost from view (a door, a corner): go where they were heading
+            return self._go(p, yaw, lost)
         if audible:
             self.levels.append(energy)
             if self.level0 is None and len(self.levels) >= 5:
                 self.level0 = float(np.median(self.levels))
         bearing, conc = self._bearing(p)
-        if self.heard < 3 or conc < 0.3:  # not sure yet: turn on the spot (turning tells front from back)
-            return self._out(_wheels(0.0, math.radians(90.0), self.robot))
-        # how far: the voice's level against the level heard at the start (1.2-2.2 m away), inverse square
-        dist = 2.0
+        dist = 2.0  # how far: the voice's level against the level heard at the start (1.2-2.2 m), inverse square
         if self.level0 is not None and self.levels:
             lvl = float(np.median(list(self.levels)[-6:]))
             dist = float(np.clip(1.7 * math.sqrt(self.level0 / max(lvl, 1e-12)), 0.5, 6.0))
-        self.est_hist.append(dist)
-        quiet_long = self.since_heard > 1.5
-        still = len(self.est_hist) == self.est_hist.maxlen and np.ptp(np.array(self.est_hist)) < 0.5
-        want = self.CLOSE if still else self.FOLLOW
+        if self.heard >= 3 and conc >= 0.25:
+            self.memory = p + dist * np.array([math.cos(math.radians(bearing)), math.sin(math.radians(bearing))])
+            self.memory_t = self.t
+        elif self.memory is not None and self.t - self.memory_t < 8.0 and np.linalg.norm(self.memory - p) > 0.5:
+            self.mode = "memory"  # unsure now: go where the voice was last placed
+            return self._go(p, yaw, self.memory)
+        else:
+            self.mode = "unsure"  # turn on the spot, listening (turning tells front from back)
+            return self._out(_wheels(0.0, math.radians(90.0), self.robot))
+        self.mode = "heard"  # the level says little about distance in a reverberant home: only the camera stops it
         err = (bearing - yaw + 180.0) % 360.0 - 180.0
-        if dist <= want and not quiet_long:
-            if abs(err) < 30.0:
-                return self._out([0.0, 0.0])
+        if abs(err) > 60.0:
             return self._out(_wheels(0.0, math.copysign(math.radians(90.0), err), self.robot))
-        goal = p + max(dist - want, 0.5) * np.array([math.cos(math.radians(bearing)), math.sin(math.radians(bearing))])
+        goal = p + max(dist, 1.5) * np.array([math.cos(math.radians(bearing)), math.sin(math.radians(bearing))])
+        return self._go(p, yaw, goal)
+
+    def _go(self, p, yaw, goal):
         self.plan_at -= 1
-        if self.path is None or self.plan_at <= 0 or (obs.get("bump") is not None and obs["bump"][0] > 0):
+        if self.path is None or self.plan_at <= 0 or self.bumped:
             self._plan(p, goal)
-            self.plan_at = 5
+            self.plan_at = 4
         while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
             self.k += 1
         return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt))
 
-    def _bearing(self, p) -> tuple[float, float]:
+    def _see(self, obs, p, yaw) -> np.ndarray | None:
+        """A person the camera sees where the voice is (where the audio-only belief holds at least 30% of its
+        largest mass within ~0.7 m; 10% within 1 m of the last sighting); fused into the acting belief; their
+        position or None."""
+        people = detect_people(obs["depth"][..., 0], self._fx, self.robot.camera_height)
+        if not people:
+            return None
+        from scipy.ndimage import uniform_filter
+
+        audio = uniform_filter(self.belief[1], size=15, mode="constant")  # audio-only mass within ~0.7 m
+        top = float(audio.max())
+        best, score = None, -1.0
+        for ang, dist in people:
+            b = yaw + ang
+            pos = p + (dist + 0.15) * np.array([math.cos(math.radians(b)), math.sin(math.radians(b))])  # body centre
+            c = np.clip(self._cell(pos), 0, self.SIZE - 1)
+            support = float(audio[c[0], c[1]]) / max(top, 1e-30)
+            near_last = self.last_seen is not None and np.linalg.norm(pos - self.last_seen[0]) < 1.0 \
+                and self.t - self.last_seen[1] < 2.0 and support >= 0.1
+            if (support >= 0.3 or near_last) and support > score:
+                best, score = pos, support
+        if best is None:
+            return None
+        g = np.exp(-((self.cx - best[0]) ** 2 + (self.cy - best[1]) ** 2) / (2 * 0.3 ** 2))
+        self.belief[0] *= 0.05 + g
+        self.belief[0] /= self.belief[0].sum()
+        self.last_seen = (best, self.t)
+        return best
+
+    def _where_lost(self) -> np.ndarray | None:
+        """Where a person seen in the last 4 s went: the last sighting, 1 m further along their recent motion."""
+        if not self.sightings or self.t - self.sightings[-1][0] > 4.0:
+            return None
+        t1, q1 = self.sightings[-1]
+        old = [q for t, q in self.sightings if t1 - t >= 0.8]
+        if not old:
+            return q1
+        v = q1 - old[-1]
+        n = float(np.hypot(*v))
+        return q1 + (v / n if n > 0.2 else 0.0)
+
+    def _follow_seen(self, person, p, yaw):
+        recent = [q for t, q in self.sightings if self.t - t <= 3.0]
+        still = len(recent) >= int(1.5 / self.dt) and np.ptp(np.array(recent), axis=0).max() < 0.35
+        want = self.CLOSE if still else self.FOLLOW
+        to = person - p
+        dist = float(np.hypot(*to))
+        err = (math.degrees(math.atan2(to[1], to[0])) - yaw + 180.0) % 360.0 - 180.0
+        if dist <= want:
+            if abs(err) < 20.0 or (still and dist <= self.CLOSE):
+                return self._out([0.0, 0.0])
+            return self._out(_wheels(0.0, math.copysign(min(math.radians(90.0), abs(math.radians(err)) / self.dt),
+                                                        err), self.robot))
+        return self._go(p, yaw, p + to * (dist - want) / dist)
+
+    def _bearing(self, p, which: int = 0) -> tuple[float, float]:
         """(the world bearing of the belief's mass beyond 1 m, degrees; its concentration, the mean resultant
         length of that mass's bearings, 0-1)."""
         dx, dy = self.cx - p[0], self.cy - p[1]
         far = dx * dx + dy * dy > 1.0
-        w = self.belief * far
+        w = self.belief[which] * far
         ang = np.arctan2(dy, dx)
         c, s = float((w * np.cos(ang)).sum()), float((w * np.sin(ang)).sum())
         tot = float(w.sum()) + 1e-12

@@ -180,7 +180,9 @@ def test_speaker_following_oracle_keeps_close_and_catches():
     assert m["catch_success"] == 1.0 and m["person_finished"] == 1.0
     assert m["time_in_band"] >= 0.8 and m["lost_s"] == 0.0
     d = np.array(env.task.distances)
-    assert m["time_in_band"] == pytest.approx(np.mean((d >= 1.0) & (d <= 2.5)))
+    walking = np.array(env.task.walking)
+    assert walking[0] and not walking[-1]  # the person stopped before the end
+    assert m["time_in_band"] == pytest.approx(np.mean((d[walking] >= 1.0) & (d[walking] <= 2.5)))
     assert m["mean_distance_m"] == pytest.approx(d.mean())
     assert d[-1] <= 1.0  # caught: within 1 m and stopped
 
@@ -197,6 +199,8 @@ def test_speaker_following_episode_definition():
         rooms = [next((r.name for r in w.scene.rooms if r.contains(np.array([q]))[0]), None) for q in ep.route]
         assert all(a != b for a, b in zip(rooms, rooms[1:]))  # each place in another room
         assert FollowEpisode.from_json(ep.to_json()) == ep
+    env.reset(seed=99, options={"episode": ep.to_json()})  # an episode replayed from its JSON
+    assert env.episode == ep and np.allclose(env.task.person.route, ep.route)
     # the catch rule: next to the stopped person, standing still -> success, +10
     env.reset(seed=0)
     p, w = env.task.person, env.home.world
@@ -207,6 +211,9 @@ def test_speaker_following_episode_definition():
         if 0.5 < np.hypot(*(q - p.pos)) < 0.8 and w.grid.line_of_sight(q, p.pos):
             w.place_robot(q[0], q[1], 0.0)
             break
+    for k in range(9):  # standing still for a second (10 steps): not yet "stopped" before that
+        obs, r, term, trunc, info = env.step(np.zeros(2, np.float32))
+        assert not term, k
     obs, r, term, trunc, info = env.step(np.zeros(2, np.float32))
     assert term and info["is_success"] and r > 9.0
     assert info["metrics"]["catch_success"] == 1.0
@@ -299,3 +306,30 @@ def test_task_run_command(tmp_path, capsys):
     assert "unknown agent" in capsys.readouterr().err
     assert main(["task", "list", "--json"]) == 0
     assert {r["task"] for r in json.loads(capsys.readouterr().out)} == {s.cli for s in TASKS.values()}
+
+
+def test_scripted_followers_senses():
+    """The two senses the scripted follower relies on: onset-weighted GCC-PHAT finds the leading ear in a
+    reverberant-like signal, and the depth detector finds a person standing in front of the camera."""
+    from agents.following import detect_people
+    from agents.scripted import onset_gcc_phat
+
+    sr, rng = 16000, np.random.default_rng(0)
+    burst = np.zeros(1600)
+    burst[800:1200] = rng.standard_normal(400)  # an onset in the middle of the block
+    tail = 0.3 * rng.standard_normal((2, 1600))  # steady diffuse noise before it: no onset there
+    for lag in (5, -5):  # the right ear hears the burst 5 samples late: the left leads
+        block = np.stack([burst, np.roll(burst, lag)]) + 0.02 * rng.standard_normal((2, 1600))
+        cc, w = onset_gcc_phat(block, tail[:, -480:], sr, 0.00066)
+        assert w > 0 and int(np.argmax(cc)) - (len(cc) - 1) // 2 == lag
+    env = T.make_env("SpeakerFollowing", scenes=HOME, sensors=("depth",))
+    env.reset(seed=2)
+    w, p = env.home.world, env.task.person
+    d = p.pos - w.pose[:2]
+    w.pose = np.array([*w.pose[:2], math.degrees(math.atan2(d[1], d[0])) + 10.0])  # the person 10 deg to the right
+    depth = env._camera().render(*w.camera)["depth"]
+    fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
+    found = detect_people(depth, fx, w.robot.camera_height)
+    dist = float(np.hypot(*d))
+    assert any(abs(a + 10.0) < 4.0 and abs(r - (dist - 0.8 * p.cfg.radius)) < 0.25 for a, r in found), found
+    env.close()

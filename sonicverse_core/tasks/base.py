@@ -142,9 +142,21 @@ class Task:
             raise ConfigError(f"task {self.name} has no option(s) {', '.join(sorted(options))}")
         self.cfg = cfg
 
+    episode_type = None  # the task's episode record (a JsonRecord dataclass)
+
     def observation_spaces(self, env) -> dict:
         """Extra observation spaces (beyond the shared sensors)."""
         return {}
+
+    def sample_episode(self, env, rng: np.random.Generator):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def episode(self, env, rng: np.random.Generator, options: dict):
+        """The episode to run: ``options["episode"]`` (a record or its JSON) or a new one from the seed."""
+        ep = options.get("episode")
+        if ep is None:
+            return self.sample_episode(env, rng)
+        return self.episode_type.from_json(ep) if isinstance(ep, str) else ep
 
     def reset(self, env, rng: np.random.Generator, options: dict):  # pragma: no cover - interface
         """Start an episode; return its record (any object with ``episode_id`` and ``scene``)."""
@@ -369,7 +381,6 @@ class TaskEnv(gym.Env):
         w = self.home.world
         self._start = w.pose.copy()
         self.steps, self.collisions, self.path_length = 0, 0, 0.0
-        self.last_speed = 0.0
         self._done = False
         self.listener = self.renderer.add_listener(w.ears, yaw=w.pose[2])
         if self.cfg.ego_noise > 0:
@@ -393,7 +404,6 @@ class TaskEnv(gym.Env):
         w = self.home.world
         self._last_wheels = a[:2]
         moved = w.drive(a[:2], self.cfg.step_seconds)
-        self.last_speed = moved / self.cfg.step_seconds
         self.steps += 1
         self.path_length += moved
         self.collisions += int(w.bumped)

@@ -8,10 +8,11 @@ rooms, 6-25 m long in all; the robot starts 1.2-2.2 m (geodesic) from the person
 voice and speech are drawn from the episode's seed (:mod:`sonicverse_core.world.person`).
 
 Ends (terminated) with ``catch_success`` when, within ``catch_window`` (10 s) of the person stopping, the robot is
-within ``catch_radius`` (1 m) geodesic of them and has stopped (it moved less than 0.05 m/s in the step); fails
+within ``catch_radius`` (1 m) geodesic of them and has stopped (it travelled less than 5 cm over the last second); fails
 (terminated) when the window passes; truncated at ``max_steps`` (1,200 = 120 s).
 
-Metrics (per episode): ``time_in_band`` (fraction of steps at a geodesic distance of 1.0-2.5 m from the person),
+Metrics (per episode): ``time_in_band`` (fraction of the steps before the person stops at the end of the route at a
+geodesic distance of 1.0-2.5 m from them: after that the robot is meant to close in),
 ``mean_distance_m`` (geodesic), ``lost_s`` (time beyond 5 m), ``collisions`` (steps with a bump), ``catch_success``,
 ``time_s``; also the route's length and whether the person reached its end.
 
@@ -34,6 +35,7 @@ from sonicverse_core.world.person import Person, PersonConfig, body_mesh, polyli
 
 BAND = (1.0, 2.5)
 LOST = 5.0
+STOP_S = 1.0  # "has stopped": travelled less than 5 cm over this long
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,7 @@ class FollowEpisode(JsonRecord):
 
 class SpeakerFollowing(Task):
     name = "SpeakerFollowing"
+    episode_type = FollowEpisode
     default_sensors = ("depth", "audio", "spectrogram", "bump", "pose")
 
     def __init__(self, cfg, person: PersonConfig | dict | None = None, route_length=(6.0, 25.0), places=(3, 4),
@@ -115,11 +118,7 @@ class SpeakerFollowing(Task):
         return np.array(pts) if lo <= total <= hi else None
 
     def reset(self, env, rng, options):
-        ep = options.get("episode")
-        if ep is None:
-            ep = self.sample_episode(env, rng)
-        elif isinstance(ep, str):
-            ep = FollowEpisode.from_json(ep)
+        ep = self.episode(env, rng, options)
         w = env.use_home(ep.scene).world
         self.person = p = Person(w, ep.route, self.person_cfg, speed=ep.speed, rng=np.random.default_rng(ep.speech_seed))
         w.place_robot(*ep.start)
@@ -133,6 +132,8 @@ class SpeakerFollowing(Task):
         env.add_actor("person", body_mesh(p.cfg.height, p.cfg.radius))
         env.move_actor("person", p.pose)
         self.distances: list[float] = []
+        self.walking: list[bool] = []  # per step: the person had not yet stopped at the end of the route
+        self.travelled: list[float] = [0.0]  # the robot's path length after each step
         self._field_key = None
         self.caught = False
         self.dist = self._distance(env)
@@ -160,27 +161,37 @@ class SpeakerFollowing(Task):
     def evaluate(self, env, a):
         d = self.dist = self._distance(env)
         self.distances.append(d)
+        self.walking.append(not self.person.finished)
+        self.travelled.append(env.path_length)
         c, p = self.cfg, self.person
         reward = 0.1 if BAND[0] <= d <= BAND[1] else -0.02 * min(max(d - BAND[1], 0.0), LOST)
         reward -= c.collision_penalty * env.home.world.bumped
         success = terminated = False
         if p.finished:
             since = p.t - p.stop_time
-            if d <= self.catch_radius and env.last_speed < 0.05:
+            if d <= self.catch_radius and self._stopped(env):
                 success = terminated = self.caught = True
                 reward += c.success_reward
             elif since >= self.catch_window:
                 terminated = True
         return reward, terminated, success
 
+    def _stopped(self, env) -> bool:
+        """The robot has stopped: it travelled less than 5 cm (path length) over the last second."""
+        n = max(1, int(round(STOP_S / self.cfg.step_seconds)))
+        if len(self.travelled) < n + 1:
+            return False
+        return self.travelled[-1] - self.travelled[-1 - n] < 0.05
+
     def info(self, env) -> dict:
         return {"distance_to_person": self.dist, "person_finished": self.person.finished}
 
     def metrics(self, env, success: bool) -> dict:
         d = np.asarray(self.distances or [self.dist], float)
+        follow = d[np.asarray(self.walking, bool)] if any(self.walking) else d
         dt = self.cfg.step_seconds
         return {"catch_success": float(success), "success": float(success),
-                "time_in_band": float(np.mean((d >= BAND[0]) & (d <= BAND[1]))),
+                "time_in_band": float(np.mean((follow >= BAND[0]) & (follow <= BAND[1]))),
                 "mean_distance_m": float(d.mean()), "lost_s": float(np.sum(d > LOST) * dt),
                 "collisions": env.collisions, "time_s": env.steps * dt, "steps": env.steps,
                 "route_length": self.person.length, "person_finished": float(self.person.finished),

@@ -28,6 +28,7 @@ __all__ = ["AudioGoal", "AudioPointGoal", "SemanticAudioNav", "NavTask", "TaskCo
 
 class NavTask(Task):
     name = "AudioGoal"
+    episode_type = Episode
 
     def sample_episode(self, env, rng: np.random.Generator) -> Episode:
         c = self.cfg
@@ -43,11 +44,7 @@ class NavTask(Task):
         raise ConfigError("no valid episode could be sampled in these homes (geodesic range too strict?)")
 
     def reset(self, env, rng, options):
-        ep = options.get("episode")
-        if ep is None:
-            ep = self.sample_episode(env, rng)
-        elif isinstance(ep, str):
-            ep = Episode.from_json(ep)
+        ep = self.episode(env, rng, options)
         home = env.use_home(ep.scene)
         world = home.world
         world.place_robot(*ep.start)
