@@ -197,7 +197,9 @@ def test_round_trip_is_two_server_periods_and_the_mic_reaches_the_robot(running)
     mic.read_pos = out.read_pos = robot.read_pos = first
     sent, back, heard = [], [], []
     period = burst_period(FS, B)
-    while sum(len(x) for x in sent) < 3 * period:  # three test bursts
+    # four periods: burst_lags needs burst + max_lag (a period) after each burst's start, and the first burst starts
+    # anywhere in the first period, so three periods held only one whole burst for about half the start phases
+    while sum(len(x) for x in sent) < 4 * period:
         eng.wait_callbacks(20)
         eng.set_poses((2.0, 2.5, 1.6, 0.0, 0.0), robots=[(1.5, 1.0, 0.4, 0.0)])
         sent.append(out.read()[0])

@@ -333,3 +333,15 @@ def test_scripted_followers_senses():
     dist = float(np.hypot(*d))
     assert any(abs(a + 10.0) < 4.0 and abs(r - (dist - 0.8 * p.cfg.radius)) < 0.25 for a, r in found), found
     env.close()
+
+
+def test_hrtf_decoding_filters_are_fitted_once_per_set():
+    """Envs build a renderer per episode: the least-squares ambisonic decoder is cached on the shared HRTF set."""
+    from sonicverse_core.acoustics.renderer import _hrtf
+
+    h = _hrtf("kemar", 16000, 256)
+    a, bulk = h.ambisonic_filters(2, 512)
+    b, bulk2 = h.ambisonic_filters(2, 512)
+    assert a is b and bulk == bulk2 and not a.flags.writeable
+    c, _ = h.ambisonic_filters(1, 512)
+    assert c.shape[0] == 4 and a.shape[0] == 9

@@ -188,7 +188,17 @@ class HrtfInterpolator:
     def ambisonic_filters(self, order: int, nfft: int, length: int = 0) -> tuple[np.ndarray, float]:
         """Binaural decoding filters of real N3D spherical harmonics up to ``order``: (C, 2, nf) complex64 with
         C = (order + 1)^2, fitted by least squares over the measured directions (onset delays restored relative to
-        the earliest one), truncated to ``length`` taps when given, and that common bulk delay in seconds."""
+        the earliest one), truncated to ``length`` taps when given, and that common bulk delay in seconds. Cached
+        per HRTF set (read-only): a renderer made per episode no longer pays the least-squares fit (~165 ms)."""
+        cache = self.__dict__.setdefault("_ambisonic", {})
+        key = (int(order), int(nfft), int(length))
+        if key not in cache:
+            H, bulk = self._ambisonic_filters(*key)
+            H.setflags(write=False)
+            cache[key] = (H, bulk)
+        return cache[key]
+
+    def _ambisonic_filters(self, order: int, nfft: int, length: int) -> tuple[np.ndarray, float]:
         from sonicverse_core.acoustics.ambisonics import real_sh
 
         bulk = float(self.onsets.min())
