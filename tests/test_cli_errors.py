@@ -29,6 +29,13 @@ def table(d):
         # argparse itself: unknown command, option, missing value, wrong choice
         [], ["frobnicate"], ["scene"], ["scene", "info"], ["scene", "info", "shoebox:6x4x3", "--nope"],
         ["eval", "--task", "Nope", "--agent", "oracle"],
+        # the task commands
+        ["task"], ["task", "run", "nonexist"], ["task", "run", "speaker-following", "--episodes", "0"],
+        ["task", "run", "orientation-training", "--noise", "nan"],
+        ["task", "run", "orientation-training", "--agent", "oracle"],
+        ["task", "run", "speaker-following", "--agent", "gan"],
+        ["task", "run", "speaker-following", "--out", str(d / "notes.txt")],
+        ["task", "run", "orientation-training", "--front-back", "2"],
         # numbers
         [*r, "--out", out, "--seconds", "nan"], [*r, "--out", out, "--seconds", "-1"],
         [*r, "--out", out, "--seconds", "inf"], [*r, "--out", out, "--sample-rate", "7"],

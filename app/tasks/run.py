@@ -14,12 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+from app.tasks.evaluate import episode_seed
 from sonicverse_core.errors import ConfigError
 from sonicverse_core.tasks.registry import TaskSpec, task_spec
-
-
-def episode_seed(seed: int, i: int) -> int:
-    return int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
