@@ -1,7 +1,8 @@
 """Speaker-following agents.
 
 * ``oracle`` (privileged: ``env.privileged()["person"]`` and ``["world"]``): drives the geodesic shortest path to
-  the person and holds 1.5 m while they walk; once they have stopped, closes to 0.7 m and stops.
+  the person and holds 1.5 m while they walk, stepping out of their way when their next 4 m of route pass within
+  0.9 m of it (people walk back out of dead-end rooms); once they have stopped, closes to 0.7 m and stops.
 * ``scripted`` (the robot's own sensors: binaural audio, depth, odometry pose, bump): two beliefs over where the
   person is, on a 0.1 m grid of the robot's odometry frame, both starting near the robot (the task starts the two
   1.2-2.2 m apart). Every step they spread as far as a person walks (1.4 m/s, a Gaussian); every heard step
@@ -45,9 +46,12 @@ class OracleFollower(Agent):
         w, person, d = priv["world"], priv["person"], priv["distance"]
         p, yaw = w.pose[:2], w.pose[2]
         want = self.CLOSE if person.finished else self.FOLLOW
-        spot = None if person.finished or not (person.walking or d < 1.5) else self._yield_spot(w, person)
-        if spot is not None:  # the person is coming back this way: step out of their path
-            return self._out(_pursue(p, yaw, spot, self.robot, self.dt, slow_within=0.3))
+        spot = None if person.finished or person.escorting else self._yield_spot(w, person)
+        if spot is not None:  # the person is coming back this way: step out of their path (round what is in the way)
+            way, length = w.grid.shortest_path(p, spot)
+            nxt = way[1] if np.isfinite(length) and len(way) > 1 else spot
+            self.path = None
+            return self._out(_pursue(p, yaw, nxt, self.robot, self.dt, slow_within=0.3))
         if d <= want:  # close enough: face the person and hold still
             v = person.pos - p
             err = (math.degrees(math.atan2(v[1], v[0])) - yaw + 180.0) % 360.0 - 180.0
@@ -68,15 +72,15 @@ class OracleFollower(Agent):
 
 
     def _yield_spot(self, w, person) -> np.ndarray | None:
-        """Where to stand when the person's next 3 m pass within 0.8 m of the robot: the nearest free place
-        (within 1.5 m) at least 1 m from that stretch and 1-2.5 m from the person; None when not in the way."""
-        ahead = person.upcoming(3.0)
+        """Where to stand when the person's next 4 m pass within 0.9 m of the robot: the nearest free place
+        (within 2.5 m) at least 1.1 m from that stretch and 1-2.2 m from the person; None when not in the way."""
+        ahead = person.upcoming(4.0)
         p = w.pose[:2]
-        if len(ahead) < 2 or np.min(np.linalg.norm(ahead[1:] - p, axis=1)) >= 0.8:
+        if len(ahead) < 2 or np.min(np.linalg.norm(ahead[1:] - p, axis=1)) >= 0.9:
             return None
         g = w.grid
         rc = g.cell_of(p)[0]
-        r = int(math.ceil(1.5 / g.config.cell))
+        r = int(math.ceil(2.5 / g.config.cell))
         rows, cols = np.mgrid[max(rc[0] - r, 0):min(rc[0] + r + 1, g.shape[0]),
                               max(rc[1] - r, 0):min(rc[1] + r + 1, g.shape[1])]
         cells = np.stack([rows.ravel(), cols.ravel()], 1)
@@ -86,7 +90,7 @@ class OracleFollower(Agent):
         xy = g.center_of(cells)
         far = np.min(np.linalg.norm(xy[:, None] - ahead[None, 1:], axis=2), axis=1)
         dp = np.linalg.norm(xy - person.pos, axis=1)
-        ok = (far >= 1.0) & (dp >= 1.0) & (dp <= 2.5) & (np.linalg.norm(xy - p, axis=1) <= 1.5)
+        ok = (far >= 1.1) & (dp >= 1.0) & (dp <= 2.2) & (np.linalg.norm(xy - p, axis=1) <= 2.5)
         if not np.any(ok):
             return None
         cand = xy[ok]

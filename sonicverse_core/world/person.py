@@ -175,6 +175,11 @@ class Person:
     _moving = False
 
     @property
+    def escorting(self) -> bool:
+        """Waiting for the robot to catch up."""
+        return self._waiting
+
+    @property
     def z_floor(self) -> float:
         return self.world.base.z_floor
 
