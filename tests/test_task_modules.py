@@ -296,6 +296,7 @@ def test_task_run_command(tmp_path, capsys):
     for k in TASKS["OrientationTraining"].metrics + ("trials",):
         assert k in res
     assert res["trials"] == 24 and (tmp_path / "orientation-training_simulated_s0_learning_curve.png").stat().st_size
+    assert set(res["staircase"]) == {"turn", "walk"}  # one track per trial kind
     assert len((tmp_path / "orientation-training_simulated_s0.csv").read_text().splitlines()) == 25
     assert main(["task", "run", "speaker-following", "--agent", "oracle", "--episodes", "1", "--max-steps", "60",
                  "--homes", "1", "--out", str(tmp_path), "--maps", str(tmp_path / "maps"), "--json"]) == 0

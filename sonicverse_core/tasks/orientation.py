@@ -6,7 +6,7 @@ participant turns to face it and presses the trigger: azimuth error, elevation e
 time. In a *walk* trial the sound keeps playing and the participant walks to it: success within 0.5 m, path
 efficiency (straight distance / walked distance), time to target. After each trial a feedback sound tells right
 (within ``correct_deg`` of the target, no reversal) from wrong. An adaptive staircase (Levitt's transformed up-down,
-1-up-2-down by default, converging on 70.7% correct) sets the difficulty: the sound's duration (shorter is harder),
+1-up-2-down by default, converging on 70.7% correct; one track per trial kind) sets the difficulty: the sound's duration (shorter is harder),
 the reverberation (more is harder) or a distractor's level (louder is harder); its threshold is the mean of the last
 even number of reversals (geometric mean for ratio-scaled parameters).
 
@@ -242,10 +242,14 @@ class OrientationTraining:
         c = self.cfg
         start, factor, lo, hi, harder_low = LEVELS[c.difficulty]
         s0 = c.start_level if c.start_level is not None else start
-        if c.staircase == "none":
-            self.staircase = FixedLevel(s0)
-        else:
-            self.staircase = Staircase(s0, factor, lo, hi, harder_low, down=2 if c.staircase == "1up2down" else 3)
+
+        def make():
+            if c.staircase == "none":
+                return FixedLevel(s0)
+            return Staircase(s0, factor, lo, hi, harder_low, down=2 if c.staircase == "1up2down" else 3)
+
+        # one track per trial kind: facing a sound and walking to it are not equally hard at the same level
+        self.staircases = {m: make() for m in dict.fromkeys(self.modes())}
         self._scene = None
         self._probes = None
 
@@ -324,7 +328,8 @@ class OrientationTraining:
         scored = 0
         for i, (block, mode) in enumerate(plan):
             stim = self.stimulus(rng)
-            level = self.staircase.level
+            stair = self.staircases[mode]
+            level = stair.level
             row = {"trial": i, "block": block, "mode": mode, "practice": block == "practice",
                    "difficulty": c.difficulty, "level": level, **stim}
             if c.render:
@@ -350,7 +355,7 @@ class OrientationTraining:
             row["correct"] = bool(correct)
             row["feedback"] = ("right" if correct else "wrong") if c.feedback else ""
             if block != "practice":
-                self.staircase.update(correct)
+                stair.update(correct)
                 scored += 1
             rows.append(row)
             if on_trial:
@@ -371,9 +376,9 @@ class OrientationTraining:
                 "walk_success": rate_ci95(r["walk_success"] for r in walk),
                 "path_efficiency": mean_ci95(r["path_efficiency"] for r in ok),
                 "time_to_target_s": mean_ci95(r["time_to_target_s"] for r in ok),
-                "trials": len(rows), "staircase": {"difficulty": self.cfg.difficulty,
-                                                   "threshold": self.staircase.threshold,
-                                                   "reversals": len(self.staircase.reversals)},
+                "trials": len(rows),
+                "staircase": {m: {"difficulty": self.cfg.difficulty, "threshold": st.threshold,
+                                  "reversals": len(st.reversals)} for m, st in self.staircases.items()},
                 "config": asdict(self.cfg)}
 
 
