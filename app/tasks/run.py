@@ -59,6 +59,7 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
     env = make_env(spec.name, split=split, **kw)
     rows = []
+    csv_path = Path(out) / f"{spec.cli}_{agent}_{split}_s{seed}.csv" if out else None
     try:
         for i in bar(range(episodes), desc=f"{spec.cli} {agent}", enabled=progress):
             s = episode_seed(seed, i)
@@ -78,6 +79,8 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
             m = info["metrics"]
             rows.append({"episode": i, "episode_id": env.episode.episode_id, "scene": env.episode.scene,
                          "reward": round(total, 4), **m})
+            if csv_path:  # rewritten whole (atomically) after every episode: Ctrl-C or a kill loses one at most
+                _write_csv(csv_path, rows)
             if maps:
                 _write_map(env, np.array(robot), None if person is None else np.array(person),
                            Path(maps) / f"episode_{i:04d}.png", spec, m)
@@ -87,10 +90,8 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
     for key in spec.metrics:
         col = "success" if key == "sr" else key
         res[key] = (rate_ci95 if key in spec.rates else mean_ci95)(r[col] for r in rows)
-    if out:
-        p = Path(out) / f"{spec.cli}_{agent}_{split}_s{seed}.csv"
-        _write_csv(p, rows)
-        res["csv"] = str(p)
+    if csv_path:
+        res["csv"] = str(csv_path)
     return res
 
 
@@ -121,11 +122,18 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
     kw.setdefault("trials", trials)
     runner = cls(**kw)
     listener = SimulatedListener(**participant)
-    rows = runner.run(listener, np.random.default_rng(seed))
+    p = Path(out) / f"{spec.cli}_{agent}_s{seed}.csv" if out else None
+    done: list[dict] = []
+
+    def keep(i, row):  # on disk every 10 trials (atomically): an interrupted session loses at most 9
+        done.append(row)
+        if p is not None and i % 10 == 9:
+            _write_csv(p, done)
+
+    rows = runner.run(listener, np.random.default_rng(seed), on_trial=keep)
     res = {"task": spec.cli, "agent": agent, "seed": seed, **runner.summary(rows)}
     if out:
         d = Path(out)
-        p = d / f"{spec.cli}_{agent}_s{seed}.csv"
         _write_csv(p, rows)
         png = d / f"{spec.cli}_{agent}_s{seed}_learning_curve.png"
         learning_curve(rows, png)
