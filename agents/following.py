@@ -29,7 +29,7 @@ from collections import deque
 
 import numpy as np
 
-from agents.scripted import Agent, _grid_path, _pursue, _wheels
+from agents.scripted import Agent, MapAgent, _pursue, _wheels
 
 
 class OracleFollower(Agent):
@@ -131,13 +131,11 @@ def detect_people(depth: np.ndarray, fx: float, camera_height: float, band=(1.0,
     return out
 
 
-class ScriptedFollower(Agent):
+class ScriptedFollower(MapAgent):
     """Follows the voice (and what the camera sees where the voice is) from the robot's own sensors; see the
     module's docstring."""
 
     name = "scripted"
-    CELL = 0.1
-    SIZE = 240  # cells: 24 m x 24 m around the start
     ITD_MAX = 0.00066  # s: the KEMAR head's largest interaural delay
     MOUTH_ABOVE_EARS = 1.03  # m: a standing person's mouth above the robot's microphones
     SHARPNESS = 4.0  # likelihood exp(SHARPNESS * (normalised GCC - 1)) per heard step
@@ -170,13 +168,6 @@ class ScriptedFollower(Agent):
         self.path, self.k, self.plan_at = None, 0, 0
         self.since_heard = 0.0
 
-    def _pose(self, obs):
-        x, y, s, c = (float(v) for v in obs["pose"])
-        return np.array([x, y]), math.degrees(math.atan2(s, c))
-
-    def _cell(self, xy):
-        return np.floor(np.asarray(xy) / self.CELL).astype(int) + self.SIZE // 2
-
     # --- the belief -------------------------------------------------------------------------------------------
     def _predict(self):
         from scipy.ndimage import gaussian_filter
@@ -201,17 +192,6 @@ class ScriptedFollower(Agent):
         self.belief /= self.belief.sum(axis=(1, 2), keepdims=True)
 
     # --- acting -----------------------------------------------------------------------------------------------
-    def _plan(self, p, goal):
-        from scipy.ndimage import binary_dilation
-
-        blocked = binary_dilation(self.occ >= 2, iterations=2)
-        s, g = self._cell(p), np.clip(self._cell(goal), 0, self.SIZE - 1)
-        blocked[s[0], s[1]] = False
-        blocked[g[0], g[1]] = False
-        path = _grid_path(blocked, tuple(s), tuple(g))
-        self.path = np.array([goal]) if path is None else (np.array(path, float) - self.SIZE // 2 + 0.5) * self.CELL
-        self.k = min(2, len(self.path) - 1)
-
     def act(self, obs, info):
         from agents.scripted import map_depth, onset_gcc_phat
 
@@ -278,7 +258,7 @@ class ScriptedFollower(Agent):
     def _go(self, p, yaw, goal):
         self.plan_at -= 1
         if self.path is None or self.plan_at <= 0 or self.bumped:
-            self._plan(p, goal)
+            self._plan_to(p, goal)
             self.plan_at = 4
         while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
             self.k += 1

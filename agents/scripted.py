@@ -107,12 +107,38 @@ class OracleAgent(Agent):
                                  slow_within=0.3 if self.k >= len(self.path) - 1 else 0.0))
 
 
-class GanAgent(Agent):
+class MapAgent(Agent):
+    """What the sensor-only agents share: the odometry pose from the ``pose`` observation, an occupancy grid of
+    ``SIZE`` x ``SIZE`` cells of ``CELL`` m around the start (filled from depth), and a planner on it."""
+
+    CELL = 0.1
+    SIZE = 240  # cells: 24 m x 24 m around the start
+
+    def _pose(self, obs):
+        x, y, s, c = (float(v) for v in obs["pose"])
+        return np.array([x, y]), math.degrees(math.atan2(s, c))
+
+    def _cell(self, xy):
+        return np.floor(np.asarray(xy) / self.CELL).astype(int) + self.SIZE // 2
+
+    def _plan_to(self, p, goal) -> None:
+        """``self.path``: waypoints from ``p`` to ``goal`` round what the map holds as blocked (dilated 2 cells;
+        unknown space counts as free); the goal alone when there is no way."""
+        from scipy.ndimage import binary_dilation
+
+        blocked = binary_dilation(self.occ >= 2, iterations=2)
+        s, g = self._cell(p), np.clip(self._cell(goal), 0, self.SIZE - 1)
+        blocked[s[0], s[1]] = False
+        blocked[g[0], g[1]] = False
+        path = _grid_path(blocked, tuple(s), tuple(g))
+        self.path = np.array([goal]) if path is None else (np.array(path, float) - self.SIZE // 2 + 0.5) * self.CELL
+        self.k = min(2, len(self.path) - 1)
+
+
+class GanAgent(MapAgent):
     """Binaural localisation + depth occupancy map + planner; uses observations only (audio, depth, pose)."""
 
     name = "gan"
-    CELL = 0.1
-    SIZE = 240  # cells: 24 m x 24 m around the start
     ITD_MAX = 0.00066  # s: the KEMAR head's largest interaural delay
 
     def reset(self, env, obs, info):
@@ -136,10 +162,6 @@ class GanAgent(Agent):
         self.votes[:] = 0
 
     # --- perception -------------------------------------------------------------------------------------------
-    def _pose(self, obs):
-        x, y, s, c = (float(v) for v in obs["pose"])
-        return np.array([x, y]), math.degrees(math.atan2(s, c))
-
     def _itd(self, audio: np.ndarray) -> tuple[float, float]:
         """(interaural delay s, left leads > 0; energy)."""
         return itd_gcc_phat(audio, self.sr, self.ITD_MAX)
@@ -147,9 +169,6 @@ class GanAgent(Agent):
     def _map_depth(self, obs, p, yaw):
         if "depth" in obs:
             map_depth(self.occ, obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height, self.CELL)
-
-    def _cell(self, xy):
-        return np.floor(np.asarray(xy) / self.CELL).astype(int) + self.SIZE // 2
 
     # --- estimation and planning ------------------------------------------------------------------------------
     def _estimate(self):
@@ -174,18 +193,7 @@ class GanAgent(Agent):
         return P[-1] + 2.5 * dirs[-1]
 
     def _plan(self, p):
-        from scipy.ndimage import binary_dilation
-
-        blocked = binary_dilation(self.occ >= 2, iterations=2)
-        s, g = self._cell(p), np.clip(self._cell(self.goal), 0, self.SIZE - 1)
-        blocked[s[0], s[1]] = False
-        blocked[g[0], g[1]] = False
-        path = _grid_path(blocked, tuple(s), tuple(g))
-        if path is None:
-            self.path = np.array([self.goal])
-        else:
-            self.path = (np.array(path, float) - self.SIZE // 2 + 0.5) * self.CELL
-        self.k = min(2, len(self.path) - 1)
+        self._plan_to(p, self.goal)
 
     def act(self, obs, info):
         p, yaw = self._pose(obs)
