@@ -173,10 +173,12 @@ def test_late_send():
     D = np.round((dist / 343.0 + 0.012) * FS).astype(np.int64)
     p_delay = D + np.array([0, 5, 40])  # the third source moved (a teleport): its delay crossfades
     fresh = np.array([False, True, False])
-    out = np.empty(B, np.float32)
+    use_occ = np.array([True, True, False])  # the third source's room is known: no transmission factor
+    group = np.array([0, 1, 1])
+    out = np.empty((2, B), np.float32)
     pd = p_delay.copy()
-    K.late_send(ring, 40, dist, occ, 0.6, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012)
-    s = 10 ** (-0.174 * dist / 0.6 / 20 - 3 * 0.012 / 0.6) * np.sqrt(occ[:, 4:7].mean(1))
+    K.late_send(ring, 40, dist, occ, use_occ, group, 0.6, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012)
+    s = 10 ** (-0.174 * dist / 0.6 / 20 - 3 * 0.012 / 0.6) * np.where(use_occ, np.sqrt(occ[:, 4:7].mean(1)), 1.0)
     s0 = np.where(fresh, s, p_send)
     r = (np.arange(B) + 1) / B
     ramp = s0[:, None] + (s - s0)[:, None] * r
@@ -185,7 +187,8 @@ def test_late_send():
     new_ = ring[rows, (40 + np.arange(B)[None] - D[:, None]) % H]  # delayed: wraps the ring
     old_ = ring[rows, (40 + np.arange(B)[None] - D0[:, None]) % H]
     src = np.where((D0 == D)[:, None], new_, old_ * (1 - r) + new_ * r)
-    np.testing.assert_allclose(out, (src * ramp).sum(0), rtol=1e-5, atol=1e-6)
+    for g in (0, 1):
+        np.testing.assert_allclose(out[g], (src * ramp)[group == g].sum(0), rtol=1e-5, atol=1e-6)
     assert np.array_equal(pd, D)
 
 

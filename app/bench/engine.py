@@ -70,8 +70,9 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg):
 
 def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:apartment", seed: int = 0,
                 sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20) -> dict:
-    """Per-block cost of the full pipeline (HRTF, occlusion, early reflections, late reverb) as a fraction of the
-    block's duration, with the listener walking and turning every block (so every source's direction, delay and
+    """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
+    reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how
+    many room tails it convolves and from how many rooms sources send to it), with the listener walking and turning every block (so every source's direction, delay and
     occlusion changes), against a naive reference in the same run: per source and ear, a full scipy convolution of
     the block with a 0.5 s binaural room impulse response (overlap-add)."""
     from scipy.signal import oaconvolve
@@ -85,6 +86,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     block_s = block / sample_rate
     n_blocks = int(seconds / block_s)
     times = np.empty(n_blocks)
+    paths, reverbs, sending = (np.zeros(n_blocks, int) for _ in range(3))
     from sonicverse_core.progress import progress
 
     for i in progress(range(-50, n_blocks), desc="audio blocks"):  # 50 warm-up blocks (timed per block, below)
@@ -95,6 +97,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
         r.render_block()
         if i >= 0:
             times[i] = time.perf_counter() - t0
+            paths[i], reverbs[i], sending[i] = (r.stats[k] for k in ("paths", "room_reverbs", "rooms_sending"))
     frac = times / block_s
     # naive reference: direct convolution of every source's block with a 0.5 s BRIR per ear
     brir = np.random.default_rng(seed).normal(size=(2, int(0.5 * sample_rate))).astype(np.float32)
@@ -117,5 +120,10 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                       "realtime_fraction": {"median": round(float(np.median(ref_frac)), 4),
                                             "p99": round(float(np.percentile(ref_frac, 99)), 4)}},
         "speedup_vs_reference": round(float(np.median(ref_frac) / np.median(frac)), 1),
-        "occlusion": dict(r.stats),
+        "occlusion": {k: r.stats[k] for k in ("occlusion_rays", "occlusion_skipped")},
+        "per_listener": {"sources_heard_along_paths": {"mean": round(float(paths.mean()), 2), "max": int(paths.max())},
+                         "room_reverbs_convolved": {"mean": round(float(reverbs.mean()), 2),
+                                                    "max": int(reverbs.max())},
+                         "rooms_sending_to_the_reverb": {"mean": round(float(sending.mean()), 2),
+                                                         "max": int(sending.max())}},
     }

@@ -125,6 +125,17 @@ def add_audio_commands(sub, bench_sub) -> None:
     bc.add_argument("--quick", action="store_true", help="fewer settings per knob")
     bc.add_argument("--json", action="store_true", help="(always JSON)")
     bc.set_defaults(func=cmd_bench_accuracy)
+    bf = bench_sub.add_parser("fidelity", help="sound between rooms: ours vs pyroomacoustics and theory",
+                              description="Shoeboxes, an L-shaped room and two rooms joined by a door (with and "
+                              "without line of sight), rendered by us and by pyroomacoustics' hybrid simulator in the "
+                              "same run; G, T30, EDT, C50, DRR per octave band 250 Hz-4 kHz, errors against the "
+                              "targets, run times; sealed rooms against the mass-law estimate.")
+    bf.add_argument("--rays", type=A.count(1000, 10_000_000), default=20_000,
+                    help="pyroomacoustics' rays (default: %(default)s)")
+    bf.add_argument("--plot", type=A.out_file(".png"), help="write a PNG of ours vs the peer per parameter")
+    bf.add_argument("--quick", action="store_true", help="three cases only")
+    bf.add_argument("--json", action="store_true", help="(always JSON)")
+    bf.set_defaults(func=cmd_bench_fidelity)
 
 
 def cmd_bench_audio(a) -> int:
@@ -138,4 +149,11 @@ def cmd_bench_accuracy(a) -> int:
     from app.bench.accuracy import bench_accuracy
 
     print(json.dumps(bench_accuracy(a.reference_rays, a.quick, a.plot)))
+    return 0
+
+
+def cmd_bench_fidelity(a) -> int:
+    from app.bench.fidelity import bench_fidelity
+
+    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick)))
     return 0

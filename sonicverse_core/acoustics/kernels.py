@@ -384,22 +384,28 @@ def accumulate_sh(A, filters, acc):
 
 
 @njit(**_opts)
-def late_send(ring, w0, dist, occ, rt_low, p_send, p_delay, fresh, out, fs, c_sound, t_mix):
-    """Mono send to the late reverb: per source, its dry samples delayed by its travel time plus the mixing time
-    (ring[i, w0 + t - D], D = round((dist / c + t_mix) fs): the tail starts after the direct sound and the early
-    reflections; when D changes, the old and the new delay are crossfaded across the block, so a teleport sends no
-    step into the reverb), scaled by 10^(-0.174 r / T / 20) (Barron & Lee: the late level falls with distance) x
-    10^(-3 t_mix / T) (the decay before the tail starts) x sqrt(mid-band occlusion transmission) (a source behind
-    walls excites the coupled space), ramped from p_send. p_send and p_delay (int64) are updated."""
-    B = len(out)
+def late_send(ring, w0, dist, occ, use_occ, group, rt_low, p_send, p_delay, fresh, out, fs, c_sound, t_mix):
+    """Sends to the late reverb, one per group of sources (out (G, B): the groups are the rooms the sources are in,
+    which the renderer filters by their coupling to the listener's room): per source, its dry samples delayed by
+    its travel time plus the mixing time (ring[i, w0 + t - D], D = round((dist / c + t_mix) fs): the tail starts
+    after the direct sound and the early reflections; when D changes, the old and the new delay are crossfaded
+    across the block, so a teleport sends no step into the reverb), scaled by 10^(-0.174 r / T / 20) (Barron & Lee:
+    the late level falls with distance) x 10^(-3 t_mix / T) (the decay before the tail starts), and, where the
+    rooms are unknown (use_occ), by the square root of the mid-band transmission of the direct path; ramped from
+    p_send. p_send and p_delay (int64) are updated."""
+    B = out.shape[1]
     H = ring.shape[1]
     out[:] = 0.0
     T = max(rt_low, 0.05)
     for i in range(len(dist)):
-        o = 0.0
-        for b in range(4, 7):
-            o += occ[i, b]
-        s = 10.0 ** (-0.174 * dist[i] / T / 20.0 - 3.0 * t_mix / T) * np.sqrt(max(o / 3.0, 0.0))
+        s = 10.0 ** (-0.174 * dist[i] / T / 20.0 - 3.0 * t_mix / T)
+        if use_occ[i]:
+            o = 0.0
+            for b in range(4, 7):
+                o += occ[i, b]
+            s *= np.sqrt(max(o / 3.0, 0.0))
+        elif occ[i, 4] == 0.0 and occ[i, 5] == 0.0 and occ[i, 6] == 0.0:
+            s = 0.0  # a source this listener does not hear
         D = np.int64((dist[i] / c_sound + t_mix) * fs + 0.5)
         s0 = s if fresh[i] else p_send[i]
         D0 = D if fresh[i] else p_delay[i]
@@ -407,15 +413,16 @@ def late_send(ring, w0, dist, occ, rt_low, p_send, p_delay, fresh, out, fs, c_so
         p_delay[i] = D
         if s == 0.0 and s0 == 0.0:
             continue
+        g = group[i]
         ds = (s - s0) / B
         if D0 == D:
             for t in range(B):
-                out[t] += ring[i, (w0 + t - D) % H] * np.float32(s0 + ds * (t + 1))
+                out[g, t] += ring[i, (w0 + t - D) % H] * np.float32(s0 + ds * (t + 1))
         else:
             for t in range(B):
                 r = (t + 1) / B
                 v = ring[i, (w0 + t - D0) % H] * (1.0 - r) + ring[i, (w0 + t - D) % H] * r
-                out[t] += v * np.float32(s0 + ds * (t + 1))
+                out[g, t] += v * np.float32(s0 + ds * (t + 1))
 
 
 @njit(**_opts)

@@ -74,6 +74,9 @@ class RenderConfig:
     occlusion_smoothing: float = 0.75
     occlusion_tolerance: float = 0.02  # m a segment end moves before its rays are cast again
     occlusion_rays_per_block: int = 16  # segments recast per block at most (all of them when the scene changes)
+    paths: bool = True  # sounds without line of sight also arrive around corners and through doorways
+    diffraction: str = "fresnel"  # bend loss of a path: fresnel (per band, from each bend's detour) | none
+    path_cell: float = 0.1  # m: the grid of the ear-height slice the paths are found on
 
     def __post_init__(self):
         if not (8000 <= self.sample_rate <= 192000):
@@ -96,6 +99,8 @@ class RenderConfig:
             raise ConfigError("occlusion_smoothing must be in [0, 1) and near_field_gain in [0, 9]")
         if not (0 <= self.occlusion_tolerance <= 10) or not (1 <= self.occlusion_rays_per_block <= 1_000_000):
             raise ConfigError("occlusion_tolerance must be in [0, 10] m and occlusion_rays_per_block >= 1")
+        if self.diffraction not in ("fresnel", "none") or not (0.02 <= self.path_cell <= 1.0):
+            raise ConfigError("diffraction must be fresnel or none and path_cell within 0.02..1 m")
         if self.hrtf_taps and not (16 <= self.hrtf_taps <= 4096):
             raise ConfigError("hrtf_taps must be within 16..4096")
 
@@ -227,6 +232,19 @@ class AcousticRenderer:
             self.occlusion = Occlusion(scene, cfg.occlusion_tolerance, cfg.occlusion_rays_per_block)
             self.subsystems.append("occlusion")
         self.stats = self.occlusion.stats if self.occlusion else {"occlusion_rays": 0, "occlusion_skipped": 0}
+        self.paths, graph = None, None
+        if self.occlusion is not None and (cfg.paths or cfg.late_reverb and scene.rooms):
+            from sonicverse_core.acoustics.paths import path_graph
+
+            graph = path_graph(scene, cfg.path_cell, caster=self.occlusion.caster)
+        if cfg.paths and graph is not None:
+            from sonicverse_core.acoustics.paths import PathState
+
+            if len(graph.nodes):  # a scene with no corner to go round needs none
+                self.paths = PathState(graph, cfg.diffraction, cfg.occlusion_tolerance,
+                                       cfg.occlusion_rays_per_block)
+                self.subsystems.append("paths")
+        self.stats.update(paths=0, room_reverbs=0, rooms_sending=0)
         self.stats.update(nonfinite_input=0, recoveries=0)
         enclosed = [p for p in (probes or []) if p.enclosed > 0.5]
         self.probes = enclosed or None
@@ -261,10 +279,19 @@ class AcousticRenderer:
                 self._er_decode = dec
             self.subsystems.append("early_reflections")
         self._late_on = cfg.late_reverb and self.probes is not None
+        self.coupling = None
         if self._late_on:
             self._probe_rt = np.array([p.rt60 for p in self.probes])
             self._probe_vol = np.array([p.volume for p in self.probes])
             self.subsystems.append("late_reverb")
+            if graph is not None and scene.rooms:  # each room excites its neighbours through doors and walls
+                from sonicverse_core.acoustics.coupling import RoomCoupling
+
+                self.coupling = RoomCoupling(scene, graph, self.probes)
+                self._src_room_at = np.full((0, 3), np.nan)
+                self._src_room = np.zeros(0, np.int64)
+                if len(scene.rooms) > 1:
+                    self.subsystems.append("coupled_rooms")
         max_delay = cfg.max_distance / SPEED_OF_SOUND + 0.01 + (self.hrtf.onsets.max() if self.hrtf else 0)
         if self._late_on:
             max_delay += MAX_MIXING_TIME  # the late send's pre-delay
@@ -300,6 +327,11 @@ class AcousticRenderer:
         g("_loop", (cap,), bool)
         g("_live", (cap,), bool)
         g("_ring", (cap, getattr(self, "hist", 1)), np.float32)
+        if getattr(self, "paths", None) is not None:
+            self.paths.grow(None, cap)
+        if getattr(self, "coupling", None) is not None:
+            self._src_room_at = _grown(self._src_room_at, (cap, 3), np.float64, np.nan)
+            self._src_room = _grown(self._src_room, (cap,), np.int64, -1)
         for st in getattr(self, "_state", []):
             self._grow_state(st, cap)
         self._cap = cap
@@ -407,6 +439,8 @@ class AcousticRenderer:
             st["amb"] = np.zeros(((2 + 1) ** 2, self.cfg.block), np.float32)
         grow("send", (cap,), np.float64)
         grow("send_delay", (cap,), np.int64)
+        if getattr(self, "paths", None) is not None:
+            self.paths.grow(st, cap)
 
     @staticmethod
     def set_listener(lis: Listener, position, yaw, pitch=None) -> None:
@@ -451,13 +485,18 @@ class AcousticRenderer:
                     self.occlusion.update(st, self._pos[:n], lis.position)
                 k = self.cfg.occlusion_smoothing if self.blocks else 0.0
                 occ, target, fresh = st["occ"][:n], st["occ_target"][:n], st["fresh"][:n]
+                pos, fwd = self._pos[:n], self._fwd[:n]
+                if self.paths is not None:  # around corners, through doorways: one emitter per source still
+                    self.paths.update(st, pos, lis.position)
+                    target, pos, fwd = self.paths.apply(st, pos, fwd, lis.position, target, self._rolloff, k, fresh)
+                    self.stats["paths"] = self.paths.stats["paths"]
                 occ += (1 - k) * (target - occ)
                 occ[fresh] = target[fresh]
                 occ[st["mute"][:n]] = 0.0  # a source this listener does not hear: no direct, ER or late path
                 R = lis.rotation()
-                out += self._direct(st, lis, R, occ)
+                out += self._direct(st, lis, R, occ, pos, fwd)
                 if self._er:
-                    out += self._early(st, lis, R, occ)
+                    out += self._early(st, lis, R, occ, pos)
                 if self._late_on:
                     out += self._late(st, lis, st["dist"][:n], occ)
                 fresh[:] = False
@@ -468,10 +507,12 @@ class AcousticRenderer:
         self.blocks += 1
         return outs
 
-    def _direct(self, st, lis, R, occ) -> np.ndarray:
+    def _direct(self, st, lis, R, occ, pos, fwd) -> np.ndarray:
+        """Every source's direct sound (or, without line of sight, its path: ``pos`` and ``fwd`` are the emitters'
+        positions and forwards, ``occ`` their per-band amplitude)."""
         cfg, n, B = self.cfg, self._n, self.cfg.block
         dirs, dist, gain, amp, delay0 = (st[k][:n] for k in ("dirs", "dist", "gain_new", "amp", "delay0"))
-        direct_geometry(self._pos[:n], lis.position, R, self._fwd[:n], self._dir_alpha[:n],
+        direct_geometry(np.ascontiguousarray(pos), lis.position, R, np.ascontiguousarray(fwd), self._dir_alpha[:n],
                         self._dir_sharp[:n], occ, AIR_ABSORPTION, *self._rolloff, SPEED_OF_SOUND, dirs, dist, gain,
                         amp, delay0)
         curve = amp @ self._band_matrix  # (n, nf)
@@ -523,13 +564,15 @@ class AcousticRenderer:
     def _tail_colour(self) -> dict:
         """How the synthesised tails sound at the ears: binaural output takes the HRTF set's diffuse-field gains
         and interaural coherence per band; mono output the same tail in both channels; stereo two independent
-        tails. Computed once per renderer."""
+        tails (both at the direct sound's sqrt(1/2) per channel). Computed once per renderer."""
         if getattr(self, "_colour", None) is None:
             if self.hrtf is not None:
                 g, rho = self.hrtf.diffuse_field  # computed once per set (renderers share it)
                 self._colour = {"gains": g, "coherence": rho}
             else:
-                self._colour = {"coherence": np.ones(len(BANDS)) if self.cfg.output == "mono" else None}
+                # the direct sound is panned with sqrt(1/2) per channel (constant power): so is the tail
+                half = np.full((2, len(BANDS)), np.sqrt(0.5))
+                self._colour = {"gains": half, "coherence": np.ones(len(BANDS)) if self.cfg.output == "mono" else None}
         return self._colour
 
     def _nearest_probe(self, st, p: np.ndarray) -> int:
@@ -545,8 +588,10 @@ class AcousticRenderer:
             st["probe_key"], st["probe"] = p.copy(), int(np.argmin(d2))
         return st["probe"]
 
-    def _early(self, st, lis, R, occ) -> np.ndarray:
-        """Image sources of the nearest probe's box, encoded in 2nd-order ambisonics, decoded binaurally."""
+    def _early(self, st, lis, R, occ, pos) -> np.ndarray:
+        """Image sources of the nearest probe's box, encoded in 2nd-order ambisonics, decoded binaurally. ``pos``:
+        the emitters (a source heard along a path is imaged from where its path puts it: outside the listener's
+        room, it has no images, and its room's sound arrives by the coupled late reverb)."""
         cfg, n, B = self.cfg, self._n, self.cfg.block
         k = self._nearest_probe(st, lis.position)
         pr = self.probes[k]
@@ -554,7 +599,7 @@ class AcousticRenderer:
             self._er_amp[k] = image_amplitudes(self._refl[k], cfg.er_order)
         q, m, _ = lattice(cfg.er_order)
         delay, gain, Y = st["er_delay_new"][:n], st["er_gain_new"][:n], st["er_Y_new"][:n]
-        image_taps(self._pos[:n], pr.box_lo, pr.box_hi, q, m, self._er_amp[k], lis.position, R,
+        image_taps(np.ascontiguousarray(pos), pr.box_lo, pr.box_hi, q, m, self._er_amp[k], lis.position, R,
                    *self._rolloff, np.ascontiguousarray(occ[:, MID].mean(1)), self._er_bulk, SPEED_OF_SOUND, delay,
                    gain, Y)
         fresh = st["fresh"][:n]
@@ -580,11 +625,20 @@ class AcousticRenderer:
         key = st.get("late_key")
         if key is None or np.max(np.abs(key - lis.position)) > 0.01:  # probe interpolation, per centimetre moved
             w = 1 / np.maximum(np.linalg.norm(self._probe_pos - lis.position, axis=1), 0.1) ** 2
+            if self.coupling is not None:  # the listener's own room's probes (its neighbours come by coupling)
+                st["lis_room"] = int(self.coupling.room_of(lis.position[None, :2])[0])
+                if st["lis_room"] >= 0:
+                    mine = self.coupling.room_of(self._probe_pos[:, :2]) == st["lis_room"]
+                    if mine.any():
+                        w = np.where(mine, w, 0.0)
             if len(w) > 2:  # the two nearest probes: each one mixed in costs a convolution per block
                 w[np.argsort(w)[:-2]] = 0.0
             w /= w.sum()
             rt = w @ self._probe_rt
             vol = float(w @ self._probe_vol)
+            room = self.scene.room_at(lis.position[:2]) if self.scene is not None and self.scene.rooms else None
+            if room is not None and room.volume > 1.0:  # the room's own volume (a proxy box sees through doors)
+                vol = room.volume
             lo, hi = float(np.mean(rt[3:6])), float(rt[7])  # 250 Hz-1 kHz and 4 kHz: the FDN's two fit points
             # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
             level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
@@ -593,9 +647,12 @@ class AcousticRenderer:
         w, lo, hi, level, t_mix = st["late_params"]
         # Barron & Lee 1988: the late level falls with source distance; a source behind walls excites the
         # coupled space: the send keeps the square root of the direct path's mid-band transmission
-        mono = np.empty(B, np.float32)
-        late_send(self._ring, (self.write - B) % self.hist, dist, occ, lo, st["send"][:n], st["send_delay"][:n],
-                  st["fresh"][:n], mono, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
+        group, use_occ, shapes = self._late_groups(st, n)
+        self.stats["room_reverbs"] = int(np.count_nonzero(w > 1e-4))  # tails convolved for this listener
+        self.stats["rooms_sending"] = int(len(np.unique(group[st["send"][:n] > 0]))) if n else 0
+        sends = np.empty((len(shapes), B), np.float32)
+        late_send(self._ring, (self.write - B) % self.hist, dist, occ, use_occ, group, lo, st["send"][:n],
+                  st["send_delay"][:n], st["fresh"][:n], sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
         p_level = st["late_level"] if st["late_level"] is not None else level
         lv = p_level + (level - p_level) * self._ramp64
         st["late_level"] = level
@@ -604,8 +661,27 @@ class AcousticRenderer:
             if old is None or abs(old[0] - lo) > 0.002 * lo or abs(old[1] - hi) > 0.002 * hi:  # 0.2 %
                 st["fdn"].set_rt60(lo, hi)
                 st["fdn_rt"] = (lo, hi)
+            mono = (sends * shapes[:, 4:7].mean(1)[:, None]).sum(0).astype(np.float32)
             return st["fdn"].process(mono) * lv
-        return st["conv"].process(mono, w) * lv
+        return st["conv"].process(sends, w, shapes) * lv
+
+    def _late_groups(self, st, n: int):
+        """Per source, which send it joins (0: the listener's room, or rooms unknown; 1 + r: room r, filtered by
+        its coupling to the listener's room) and whether its send falls with the direct path's transmission (rooms
+        unknown); the groups' per-band amplitudes (G, 9)."""
+        if self.coupling is None or st.get("lis_room", -1) < 0:
+            return np.zeros(n, np.int64), np.ones(n, bool), np.ones((1, len(BANDS)))
+        c, pos = self.coupling, self._pos[:n]
+        moved = ~(np.max(np.abs(self._src_room_at[:n] - pos), axis=1) <= 0.05)
+        if moved.any():
+            idx = np.flatnonzero(moved)
+            self._src_room[idx] = c.room_of(pos[idx, :2])
+            self._src_room_at[idx] = pos[idx]
+        room, lr = self._src_room[:n], st["lis_room"]
+        group = np.where((room >= 0) & (room != lr), room + 1, 0).astype(np.int64)
+        shapes = np.ones((len(c.rooms) + 1, len(BANDS)))  # the reverb transforms only the groups with sound
+        shapes[1:] = c.transfer()[:, lr]
+        return group, room < 0, shapes
 
     def _recover(self, st: dict) -> None:
         """A listener's block came out non-finite: clear every state that carries it into later blocks (filter

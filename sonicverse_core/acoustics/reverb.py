@@ -12,6 +12,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from sonicverse_core.scene.materials import BANDS
+
 BASE_DELAYS = np.array([1031, 1327, 1523, 1723, 1949, 2179, 2437, 2719])  # samples at 48 kHz (primes)
 
 
@@ -146,6 +148,7 @@ class ConvolutionReverb:
     def __init__(self, sample_rate: int, block: int, probe_rt60s, seconds: float = 3.0, seed: int = 0,
                  gains: np.ndarray | None = None, coherence: np.ndarray | None = None):
         self.B = B = block
+        self.sample_rate = sample_rate
         self.nf = B + 1
         key = (lambda a: None if a is None else tuple(np.round(np.asarray(a, float).ravel(), 6)))
         n = [min(_tail_length(rt, sample_rate), int(seconds * sample_rate)) for rt in probe_rt60s]
@@ -156,7 +159,7 @@ class ConvolutionReverb:
         self.fdl = np.zeros((P, self.nf), np.complex64)
         self._Y = np.zeros((2, self.nf), np.complex64)
         self.t = 0
-        self.prev_in = np.zeros(B)
+        self.prev_in = np.zeros((1, B))
         self.w = None
 
     def reset(self) -> None:
@@ -164,13 +167,32 @@ class ConvolutionReverb:
         self.fdl[:] = 0
         self.prev_in[:] = 0.0
 
-    def process(self, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """x (block,) mono send; weights (n_probes,) summing to 1 -> (2, block)."""
+    def process(self, x: np.ndarray, weights: np.ndarray, shapes: np.ndarray | None = None) -> np.ndarray:
+        """x (block,) mono send, or (G, block) sends each shaped by its row of ``shapes`` (G, 9) per-band amplitudes
+        (the coupling of the room the group's sources are in); weights (n_probes,) summing to 1 -> (2, block)."""
         B, P = self.B, self.P
-        frame = np.concatenate([self.prev_in, x])
-        self.prev_in = np.asarray(x, float).copy()
+        x = np.atleast_2d(np.asarray(x, float))
+        if self.prev_in.shape != x.shape:  # a first block with more groups: they start from silence
+            prev = np.zeros(x.shape)
+            prev[: len(self.prev_in)] = self.prev_in[: len(x)]
+            self.prev_in = prev
+        live = np.flatnonzero(np.any(x != 0, axis=1) | np.any(self.prev_in != 0, axis=1))
+        frame = np.concatenate([self.prev_in[live], x[live]], axis=1)
+        self.prev_in = x.copy()
         s = self.t % P
-        self.fdl[s] = np.fft.rfft(frame)
+        X = np.fft.rfft(frame, axis=-1)  # only the groups that carry sound (one FFT each)
+        if shapes is not None:
+            shapes = np.asarray(shapes, float)[live]
+        if len(live) == 0:
+            self.fdl[s] = 0.0
+        elif shapes is None or np.all(shapes == 1):
+            self.fdl[s] = X.sum(0)
+        else:  # a smooth per-band curve (linear in log frequency between band centres) per group
+            if getattr(self, "_band_bins", None) is None:
+                f = np.fft.rfftfreq(2 * B, 1 / self.sample_rate)
+                lf = np.log2(np.maximum(f, BANDS[0]))
+                self._band_bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
+            self.fdl[s] = np.einsum("gf,gf->f", X, shapes @ self._band_bins)
         off = P - 1 - s
         w_old = weights if self.w is None else self.w
         ramp = (np.arange(B) + 1) / B

@@ -35,14 +35,16 @@ class Hits:
 
 @dataclass(frozen=True)
 class Crossings:
-    """Every surface crossed by segments, flat: ray, distance, part, material : (k,) arrays; dynamic : (k,) bool.
-    A part crossed several times by one segment (both faces of a wall) appears once per face."""
+    """Every surface crossed by segments, flat: ray, distance, part, material : (k,) arrays; dynamic : (k,) bool;
+    face : (k,) the face crossed (static faces first, then the dynamic mesh's). A part crossed several times by one
+    segment (both faces of a wall) appears once per face."""
 
     ray: np.ndarray
     distance: np.ndarray
     part: np.ndarray
     material: np.ndarray
     dynamic: np.ndarray
+    face: np.ndarray
 
 
 def _as_rays(origins, directions):
@@ -199,11 +201,12 @@ class SceneRayCaster:
                     active, d, travelled, face, dist = active[hit], d[hit], travelled[hit], face[hit], dist[hit]
                 t = travelled + dist
                 out.append((active, t, caster.mesh.face_part[face] + off, caster.mesh.face_material[face],
-                            np.full(len(active), dyn)))
+                            np.full(len(active), dyn), face + (len(self.scene.static_mesh()) if dyn else 0)))
                 travelled = t + STEP_EPS
         if not out:
             e = np.zeros(0)
-            return Crossings(e.astype(np.int64), e, e.astype(np.int64), e.astype(np.int64), e.astype(bool))
+            return Crossings(e.astype(np.int64), e, e.astype(np.int64), e.astype(np.int64), e.astype(bool),
+                             e.astype(np.int64))
         cat = [np.concatenate(x) for x in zip(*out)]
         order = np.lexsort((cat[1], cat[0]))
         return Crossings(*(c[order] for c in cat))

@@ -1,6 +1,7 @@
 """Scene specs: one string names a scene.
 
 - ``builtin:apartment?seed=N`` the procedural home (default seed 0)
+- ``builtin:l-room``, ``builtin:two-rooms?door=open|closed|sealed`` reference rooms for sound between rooms
 - ``shoebox:LxWxH?material=NAME`` (or ``floor=``, ``ceiling=``, ``walls=``, ``x0=``...)
 - a path to a .glb/.gltf/.obj/.ply file
 - ``mp3d:DIR`` a Matterport3D house folder, ``igibson:DIR`` an iGibson scene folder
@@ -17,7 +18,7 @@ from sonicverse_core.scene.mapping import MAPPINGS, CategoryMapping, load_mappin
 from sonicverse_core.scene.model import Scene
 
 DEFAULT_SCENE = "builtin:apartment"
-KINDS = ("builtin:apartment", "shoebox:LxWxH", "FILE.glb|.gltf|.obj|.ply", "mp3d:DIR", "igibson:DIR")
+KINDS = ("builtin:apartment", "builtin:l-room", "builtin:two-rooms?door=open|closed|sealed", "shoebox:LxWxH", "FILE.glb|.gltf|.obj|.ply", "mp3d:DIR", "igibson:DIR")
 
 
 def _split(spec: str) -> tuple[str, dict[str, str]]:
@@ -57,6 +58,13 @@ def load_scene(spec: str = DEFAULT_SCENE) -> Scene:
             raise SceneSpecError(f"scene spec '{spec}': seed must be an integer") from None
         _unused(spec, params)
         return generate_apartment(seed, mapping, spec=spec)
+    if head in ("builtin:l-room", "builtin:two-rooms"):
+        from sonicverse_core.scene import reference
+
+        params.pop("mapping", None)
+        door = params.pop("door", "open") if head == "builtin:two-rooms" else None
+        _unused(spec, params)
+        return reference.l_room() if door is None else reference.two_rooms(door)
     if head.startswith("shoebox:"):
         from sonicverse_core.scene.shoebox import make_shoebox
 

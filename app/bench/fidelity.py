@@ -1,0 +1,249 @@
+"""`sonicverse bench fidelity`: error against run time for sound between rooms.
+
+A suite of rooms, each rendered by our renderer (mono output, an impulse) and by pyroomacoustics' hybrid simulator
+(image sources to order 3 + stochastic ray tracing, the same 9-band absorption and scattering, its own air
+absorption model; ours uses Resonance Audio's coefficients) in the same run, and, where theory has an answer,
+against theory: Eyring's T and Barron's revised theory's G for the shoeboxes, the mass-law estimate
+D = TL - 10 log10(S / A2) for the sealed rooms (pyroomacoustics has no transmission through walls).
+
+Per case and octave band (250 Hz - 4 kHz): strength G (dB re the free field at 10 m; both use the 1/r law), T30,
+EDT (s), C50 (dB) and DRR (dB, the first arrival's +-2.5 ms over the rest), ours vs the peer, and our run time
+(bake and render) vs the peer's. Targets (issue 15): G within 3 dB, T30 within 20% (10% in the diffuse shoebox),
+C50 within 3 dB, EDT within 25%; sealed: D within 3 dB of the estimate.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+BANDS = (250, 500, 1000, 2000, 4000)
+FS = 16_000
+C = 343.0
+
+
+def _band(h: np.ndarray, f0: float, fs: int) -> np.ndarray:
+    from scipy.signal import butter, sosfilt
+
+    sos = butter(4, [f0 / np.sqrt(2), min(f0 * np.sqrt(2), 0.99 * fs / 2)], btype="band", fs=fs, output="sos")
+    return sosfilt(sos, h)
+
+
+def _fit(db: np.ndarray, t: np.ndarray, hi: float, lo: float) -> float | None:
+    m = (db <= hi) & (db >= lo)
+    if np.count_nonzero(m) < 5:
+        return None
+    slope = np.polyfit(t[m], db[m], 1)[0]
+    return -60.0 / slope if slope < 0 else None
+
+
+def room_parameters(h: np.ndarray, fs: int = FS) -> dict:
+    """G, T30, EDT, C50, DRR per band of a mono impulse response (1/r law: a unit source gives 1/r)."""
+    imp = np.zeros(fs)
+    imp[0] = 1.0
+    e0 = np.abs(h)
+    t_dir = int(np.argmax(e0 > 0.1 * e0.max()))  # the first arrival (direct or diffracted)
+    out = {k: [] for k in ("G", "T30", "EDT", "C50", "DRR")}
+    for f0 in BANDS:
+        x = _band(h, f0, fs) ** 2
+        ref = np.sum(_band(imp, f0, fs) ** 2) * 0.1 ** 2
+        out["G"].append(10 * np.log10(np.sum(x) / ref))
+        x = x[t_dir:]
+        sch = np.cumsum(x[::-1])[::-1]
+        db = 10 * np.log10(np.maximum(sch / sch[0], 1e-30))
+        t = np.arange(len(x)) / fs
+        out["T30"].append(_fit(db, t, -5, -35) or _fit(db, t, -5, -25))
+        out["EDT"].append(_fit(db, t, 0, -10))
+        k50, kd = int(0.05 * fs), int(0.0025 * fs)
+        out["C50"].append(10 * np.log10(np.sum(x[:k50]) / max(np.sum(x[k50:]), 1e-30)))
+        out["DRR"].append(10 * np.log10(np.sum(x[:kd]) / max(np.sum(x[kd:]), 1e-30)))
+    return {k: [None if v is None else round(float(v), 3) for v in vals] for k, vals in out.items()}
+
+
+def _pra_material(name: str):
+    import pyroomacoustics as pra
+
+    from sonicverse_core.scene.materials import BANDS as ALL, get_material
+
+    m = get_material(name)
+    return pra.Material(energy_absorption={"coeffs": list(m.absorption[1:8]), "center_freqs": list(ALL[1:8])},
+                        scattering=m.scattering)
+
+
+def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays):
+    import pyroomacoustics as pra
+
+    room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=_pra_material(walls),
+                                 ray_tracing=True, air_absorption=True)
+    room.extrude(H, materials={"floor": _pra_material(floor), "ceiling": _pra_material(ceiling)})
+    room.set_ray_tracing(n_rays=rays, receiver_radius=0.5)
+    room.add_source(list(src))
+    room.add_microphone(np.array(lis, float)[:, None])
+    room.compute_rir()
+    return np.asarray(room.rir[0][0], float)
+
+
+def _ours(spec: str, src, lis, seconds: float) -> tuple[np.ndarray, float, float]:
+    from sonicverse_core.acoustics.probes import scene_probes
+    from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+    from sonicverse_core.scene.spec import load_scene
+
+    scene = load_scene(spec)
+    t0 = time.perf_counter()
+    probes = scene_probes(scene)
+    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono"), probes=probes)
+    t_bake = time.perf_counter() - t0
+    x = np.zeros(int(seconds * FS), np.float32)
+    x[0] = 1.0
+    r.add_source(x, position=src, loop=False)
+    r.add_listener(lis)
+    t0 = time.perf_counter()
+    out = r.render(seconds)[0]
+    t_render = time.perf_counter() - t0
+    return out.astype(float).sum(0) / np.sqrt(2), t_bake, t_render  # mono: each channel carries 1/sqrt(2)
+
+
+SHOEBOXES = {
+    "shoebox small absorbing": ((4.0, 3.0, 2.5), "WoodPanel", "ParquetOnConcrete", "AcousticCeilingTiles"),
+    "shoebox medium diffuse": ((8.0, 6.0, 3.0), "PlasterRough", "ParquetOnConcrete", "PlasterRough"),
+    "shoebox large absorbing ceiling": ((12.0, 9.0, 4.0), "BrickBare", "LinoleumOnConcrete", "AcousticCeilingTiles"),
+}
+L_ROOM = [(0, 0), (6, 0), (6, 3), (3, 3), (3, 6), (0, 6)]
+TWO_ROOMS = [(0, 0), (3.95, 0), (3.95, 1.55), (4.05, 1.55), (4.05, 0), (8, 0), (8, 4), (4.05, 4), (4.05, 2.45),
+             (3.95, 2.45), (3.95, 4), (0, 4)]  # the partition as a 0.1 m notch; its doorway runs up to the ceiling
+
+
+def _cases():
+    from sonicverse_core.scene import reference as ref
+
+    for name, (dims, walls, floor, ceiling) in SHOEBOXES.items():
+        L, W, H = dims
+        spec = f"shoebox:{L:g}x{W:g}x{H:g}?walls={walls}&floor={floor}&ceiling={ceiling}"
+        src, lis = (0.3 * L, 0.35 * W, 1.2), (0.7 * L, 0.6 * W, 1.5)
+        corners = [(0, 0), (L, 0), (L, W), (0, W)]
+        yield name, spec, corners, H, (walls, floor, ceiling), src, lis, dims
+    mats = (ref.WALLS, ref.FLOOR, ref.CEILING)
+    yield "L-room, line of sight", "builtin:l-room", L_ROOM, 3.0, mats, (5.0, 1.5, 1.5), (1.5, 1.5, 1.5), None
+    yield "L-room, round the corner", "builtin:l-room", L_ROOM, 3.0, mats, (5.0, 1.5, 1.5), (1.5, 5.0, 1.5), None
+    yield ("two rooms, open door, line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, mats,
+           (2.0, 2.6, 1.5), (6.0, 1.7, 1.5), None)
+    yield ("two rooms, open door, no line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, mats,
+           (2.0, 2.6, 1.5), (6.0, 0.6, 1.5), None)
+
+
+def _theory_shoebox(dims, walls, floor, ceiling, src, lis) -> dict:
+    from sonicverse_core.acoustics.probes import eyring_rt60
+
+    T = eyring_rt60(dims, {"floor": floor, "ceiling": ceiling, "x0": walls, "x1": walls, "y0": walls,
+                           "y1": walls}, air=True)[[3, 4, 5, 6, 7]]
+    V = float(np.prod(dims))
+    r = float(np.linalg.norm(np.subtract(src, lis)))
+    G = 10 * np.log10(100 / r ** 2 + 31200 * T / V * np.exp(-0.04 * r / T))
+    return {"G": np.round(G, 3).tolist(), "T30": np.round(T, 3).tolist()}
+
+
+TARGETS = {"G": ("abs_db", 3.0), "T30": ("rel", 0.20), "C50": ("abs_db", 3.0), "EDT": ("rel", 0.25)}
+
+
+def _errors(ours: dict, peer: dict, diffuse: bool) -> dict:
+    out = {}
+    for k, (kind, tol) in TARGETS.items():
+        tol = 0.10 if diffuse and k == "T30" else tol
+        errs = []
+        for a, b in zip(ours[k], peer[k]):
+            if a is None or b is None:
+                errs.append(None)
+            else:
+                errs.append(round(a - b, 3) if kind == "abs_db" else round(a / b - 1, 3))
+        ok = all(e is not None and abs(e) <= tol for e in errs)
+        out[k] = {"error": errs, "tolerance": tol, "met": ok}
+    return out
+
+
+def _sealed(rays: int) -> dict:
+    """Sealed rooms: our level difference between the rooms per band vs D = TL - 10 log10(S / A2)."""
+    from sonicverse_core.acoustics.coupling import RoomCoupling
+    from sonicverse_core.acoustics.paths import path_graph
+    from sonicverse_core.acoustics.probes import scene_probes
+    from sonicverse_core.scene.materials import get_material
+    from sonicverse_core.scene.spec import load_scene
+
+    spec = "builtin:two-rooms?door=sealed"
+    src = (2.0, 2.0, 1.5)
+    G1, G2 = [], []
+    t = 0.0
+    for lis in ((1.0, 1.0, 1.5), (3.0, 3.2, 1.5)):
+        h, tb, tr = _ours(spec, src, lis, 3.0)
+        G1.append(room_parameters(h)["G"])
+        t += tr
+    for lis in ((5.5, 1.0, 1.5), (7.0, 3.2, 1.5)):
+        h, tb, tr = _ours(spec, src, lis, 3.0)
+        G2.append(room_parameters(h)["G"])
+        t += tr
+    mean = lambda G: 10 * np.log10(np.mean(10 ** (np.array(G) / 10), axis=0))  # noqa: E731
+    D = mean(G1) - mean(G2)
+    scene = load_scene(spec)
+    c = RoomCoupling(scene, path_graph(scene), scene_probes(scene))
+    tl = np.array(get_material("Sheetrock").transmission_loss_db)[[3, 4, 5, 6, 7]]
+    est = tl - 10 * np.log10(4.0 * 3.0 / c.A[1][[3, 4, 5, 6, 7]])
+    err = D - est
+    return {"case": "two rooms, sealed (vs the mass-law estimate)", "bands_hz": list(BANDS),
+            "D_ours_db": np.round(D, 2).tolist(), "D_estimate_db": np.round(est, 2).tolist(),
+            "error_db": np.round(err, 2).tolist(), "met": bool(np.all(np.abs(err) <= 3.0)),
+            "our_render_s": round(t, 2)}
+
+
+def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False) -> dict:
+    from sonicverse_core.progress import progress
+
+    cases, seconds = [], 3.0
+    todo = list(_cases())
+    if quick:
+        todo = todo[1:2] + todo[4:5] + todo[6:7]
+    for name, spec, corners, H, (walls, floor, ceiling), src, lis, dims in progress(todo, len(todo), "rooms"):
+        t0 = time.perf_counter()
+        h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays)
+        t_peer = time.perf_counter() - t0
+        h, t_bake, t_render = _ours(spec, src, lis, seconds)
+        ours, peer = room_parameters(h), room_parameters(h_peer)
+        row = {"case": name, "scene": spec, "source": list(src), "listener": list(lis), "bands_hz": list(BANDS),
+               "ours": ours, "pyroomacoustics": peer, "vs_pyroomacoustics": _errors(ours, peer, "diffuse" in name),
+               "time_s": {"ours_bake": round(t_bake, 3), "ours_render": round(t_render, 3),
+                          "ours_realtime_fraction": round(t_render / seconds, 4),
+                          "pyroomacoustics": round(t_peer, 3)}}
+        if dims is not None:
+            row["theory"] = _theory_shoebox(dims, walls, floor, ceiling, src, lis)
+        cases.append(row)
+    sealed = _sealed(rays)
+    met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
+    out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
+           f"{rays} rays, receiver radius 0.5 m)", "sample_rate": FS, "cases": cases, "sealed": sealed,
+           "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}
+    if plot:
+        _plot(cases, plot)
+        out["plot"] = plot
+    return out
+
+
+def _plot(cases: list, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(1, 4, figsize=(18, 4.5))
+    for ax, k in zip(axs, ("G", "T30", "EDT", "C50")):
+        for c in cases:
+            a = np.array([np.nan if v is None else v for v in c["ours"][k]], float)
+            b = np.array([np.nan if v is None else v for v in c["pyroomacoustics"][k]], float)
+            ax.plot(b, a, "o", label=c["case"])
+        lo = np.nanmin([ax.get_xlim()[0], ax.get_ylim()[0]])
+        hi = np.nanmax([ax.get_xlim()[1], ax.get_ylim()[1]])
+        ax.plot([lo, hi], [lo, hi], "k-", lw=0.8)
+        ax.set_xlabel(f"{k}, pyroomacoustics")
+        ax.set_ylabel(f"{k}, ours")
+        ax.set_title(k + " (250 Hz - 4 kHz)")
+    axs[0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

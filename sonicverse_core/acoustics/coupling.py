@@ -1,0 +1,135 @@
+"""Coupled rooms: how much of a source's reverberant energy reaches the other rooms, per band.
+
+Statistical energy balance (see the module's references in ``between-rooms`` theory): room i with absorption area
+A_i (Sabine, from its probes' baked RT60 and its volume: A = 0.161 V / T) exchanges energy with room j through
+K_ij = sum of S tau over the elements they share:
+
+* doorways (the scene's doors, between the rooms each names): the open part of the leaf's area with tau = 1 (the
+  aperture fraction of :meth:`PathGraph.apertures`), the rest through the leaf's material;
+* openings found on the ear-height slice where the free space of two rooms touches (mesh scenes, which have no
+  door objects): their width x 2 m (or the lower ceiling) with tau = 1;
+* walls: the length of boundary the two rooms share on the slice (free cells of one room within 0.6 m of the other)
+  x the lower ceiling, with the transmission per band of the materials a ray between them crosses (mass law).
+
+Per band: (A_i + sum_j K_ij) E_i - sum_j K_ij E_j = W_i; a source of unit power in room s gives energies E; the
+listener's room l receives E_l / E_s of the source room's reverberant energy. For two rooms with S tau << A this is
+the textbook D = TL - 10 log10(S / A_2).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from sonicverse_core.scene.materials import BANDS, material_arrays
+
+OPENING_HEIGHT = 2.0
+
+
+class RoomCoupling:
+    def __init__(self, scene, graph, probes):
+        self.scene, self.graph = scene, graph
+        self.rooms = list(scene.rooms)
+        R = len(self.rooms)
+        self.index = {r.name: k for k, r in enumerate(self.rooms)}
+        rt_all = np.mean([p.rt60 for p in probes], axis=0) if probes else np.full(len(BANDS), 0.5)
+        self.A = np.zeros((R, len(BANDS)))
+        for k, r in enumerate(self.rooms):
+            mine = [p.rt60 for p in probes or [] if r.contains(p.position[:2])[0]]
+            rt = np.mean(mine, axis=0) if mine else rt_all
+            self.A[k] = 0.161 * max(r.volume, 1.0) / np.maximum(rt, 0.05)
+        self.walls = np.zeros((R, R, len(BANDS)))  # S tau through walls (and openings of mesh scenes)
+        self._slice_coupling()
+        self._cache: dict = {}
+
+    def _slice_coupling(self) -> None:
+        g, R = self.graph, len(self.rooms)
+        if R < 2:
+            return
+        ny, nx = g.shape
+        ij = np.argwhere(~g.blocked)
+        centres = g.origin + (ij[:, ::-1] + 0.5) * g.cell
+        masks = []
+        for r in self.rooms:
+            m = np.zeros(g.shape, bool)
+            m[ij[:, 0], ij[:, 1]] = r.contains(centres)
+            masks.append(m)
+        trans = material_arrays()[2]
+        boundary = [m & ndimage.binary_dilation(g.blocked, np.ones((3, 3), bool)) for m in masks]
+        door_rooms = {frozenset(d.rooms) for d in g.doors}
+        near = [ndimage.distance_transform_edt(~m) * g.cell for m in masks]
+        for a in range(R):
+            for b in range(a + 1, R):
+                h = min(self.rooms[a].z_ceiling - self.rooms[a].z_floor, self.rooms[b].z_ceiling - self.rooms[b].z_floor)
+                # openings: free cells of one room next to free cells of the other (no wall between)
+                touch = masks[a] & ndimage.binary_dilation(masks[b], np.ones((3, 3), bool))
+                if touch.any() and frozenset((self.rooms[a].name, self.rooms[b].name)) not in door_rooms:
+                    width = max(np.count_nonzero(touch), 1) * g.cell
+                    self.walls[a, b] += width * min(OPENING_HEIGHT, h)
+                shared = [boundary[a] & (near[b] < 0.6), boundary[b] & (near[a] < 0.6)]
+                n_cells = 0.5 * (np.count_nonzero(shared[0]) + np.count_nonzero(shared[1]))
+                if n_cells == 0:
+                    continue
+                # the wall's transmission: rays at ear height from up to 24 shared cells of a to the nearest cells of
+                # b; a ray that crosses nothing went through an opening (a door's, counted with the door)
+                pa = np.argwhere(shared[0])
+                pa = pa[np.linspace(0, len(pa) - 1, min(24, len(pa))).astype(int)]
+                _, (ib, jb) = ndimage.distance_transform_edt(~masks[b], return_indices=True)
+                pb = np.c_[ib[pa[:, 0], pa[:, 1]], jb[pa[:, 0], pa[:, 1]]]
+                xa = np.c_[g.origin + (pa[:, ::-1] + 0.5) * g.cell, np.full(len(pa), g.z)]
+                xb = np.c_[g.origin + (pb[:, ::-1] + 0.5) * g.cell, np.full(len(pb), g.z)]
+                cr = self._caster().crossings(xa, xb, include_dynamic=False)
+                taus = []
+                for ray in np.unique(cr.ray):
+                    sel = np.flatnonzero(cr.ray == ray)
+                    _, first = np.unique(cr.part[sel], return_index=True)
+                    taus.append(np.prod(trans[cr.material[sel[first]]], axis=0))
+                if taus:
+                    self.walls[a, b] += n_cells * g.cell * h * len(taus) / len(pa) * np.mean(taus, axis=0)
+        self.walls += self.walls.transpose(1, 0, 2)
+
+    def _caster(self):
+        if getattr(self, "_rc", None) is None:
+            from sonicverse_core.geometry.raycast import SceneRayCaster
+
+            self._rc = SceneRayCaster(self.scene)
+        return self._rc
+
+    def coupling(self) -> np.ndarray:
+        """K (R, R, 9): S tau between every pair of rooms, the doors as they are now."""
+        K = self.walls.copy()
+        trans = material_arrays()[2]
+        from sonicverse_core.scene.materials import MATERIAL_INDEX
+
+        for d, ap in zip(self.graph.doors, self.graph.apertures()):
+            if len(d.rooms) != 2 or any(r not in self.index for r in d.rooms):
+                continue
+            a, b = (self.index[r] for r in d.rooms)
+            area = d.width * OPENING_HEIGHT
+            k = area * (ap + (1 - ap) * trans[MATERIAL_INDEX[d.material]])
+            K[a, b] += k
+            K[b, a] += k
+        return K
+
+    def transfer(self) -> np.ndarray:
+        """(R, R, 9) amplitude: sqrt(E_l / E_s) for a source in room s heard in room l, the doors as they are now
+        (cached per door state)."""
+        key = tuple(np.round(self.graph.apertures(), 4))
+        T = self._cache.get(key)
+        if T is None:
+            R = len(self.rooms)
+            K = self.coupling()
+            T = np.ones((R, R, len(BANDS)))
+            for b in range(len(BANDS)):
+                M = np.diag(self.A[:, b] + K[:, :, b].sum(1)) - K[:, :, b]
+                E = np.linalg.solve(M, np.eye(R))  # column s: a unit source in room s
+                T[:, :, b] = np.sqrt(np.maximum(E / np.diag(E)[None, :], 0.0)).T  # [s, l]
+            self._cache = {key: T}
+        return T
+
+    def room_of(self, xy: np.ndarray) -> np.ndarray:
+        """(n,) room index of points (n, 2), -1 outside every room."""
+        out = np.full(len(xy), -1)
+        for k, r in enumerate(self.rooms):
+            m = (out < 0) & r.contains(xy)
+            out[m] = k
+        return out

@@ -1,0 +1,650 @@
+"""Propagation paths: how a sound without line of sight reaches a listener (around corners, through doorways).
+
+Baked once per scene (:func:`path_graph`, cached in memory by the static structure's hash and the doors):
+
+* a horizontal slice of the static structure at ear height, rasterised on a grid (``cell``, default 0.1 m) by
+  Embree rays along every row and column: a cell is blocked where a surface crosses it (walls of any thickness,
+  zero-thickness panels, tall furniture; door leaves are dynamic and not in it). Free pockets too small to hold a
+  person (the inside of a thick wall) are blocked too;
+* the nodes of a visibility graph: the convex corners of the free space (a free cell whose diagonal neighbour is
+  blocked while the two cells beside both are free: wall ends, door jambs, room corners that turn outward);
+* its edges: node pairs in line of sight on the grid (exact cell traversal), weighted by length; every door's
+  doorway (the closed leaf's segment) is a portal, and edges that cross it remember which door;
+* all-pairs shortest paths over the edges of the doors that are not closed (recomputed when a door closes or
+  opens, a few milliseconds).
+
+At run time (:class:`PathState`), for each source and listener without line of sight on the slice: the nodes each
+can see (cached per source and per listener until it moves), the shortest path S -> a ... b -> L over them, and
+along it:
+
+* its length (3-D: the height difference spread along the path), so the delay and the distance law follow it;
+* the direction of its last bend b, which is where the listener hears it from;
+* a diffraction loss per band at every bend, from the Fresnel number N = 2 delta f / c of that bend's detour
+  delta (the path over the edge minus the straight line between its neighbours): 10 log10(1 + 20 N) dB (Maekawa's
+  chart without its 5 dB step, so the level is continuous where line of sight is gained or lost: delta -> 0 there),
+  at most 25 dB per bend;
+* every door it passes through by the energy fraction of its aperture (a leaf opened by theta leaves a gap of
+  2 w sin(theta / 2), at most the doorway's width w).
+
+The renderer adds this path and the transmission through the walls along the straight line (the occlusion
+subsystem) in energy and hears the sum from a virtual source blended between the two by their energies: from the
+doorway when the path dominates, through the wall when the door is shut.
+"""
+from __future__ import annotations
+
+import copy
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from sonicverse_core.acoustics.kernels import distance_gain_1
+from sonicverse_core.scene.materials import BANDS
+
+_opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+
+DIFFRACTION_MODELS = ("fresnel", "none")
+MAX_BEND_LOSS_DB = 25.0
+MAX_NODES = 800
+MIN_POCKET = 0.2  # m: free regions whose widest point is narrower than this are inside walls, not rooms
+
+
+@njit(**_opts)
+def grid_los(blocked, x0, y0, x1, y1):
+    """True when the segment (x0, y0) -> (x1, y1) (in cell units, cell (i, j) spans [j, j+1) x [i, i+1)) meets no
+    blocked cell other than the cells of its two ends. Exact traversal (Amanatides & Woo); where the segment passes
+    through a cell corner both side cells must be free (no leak through diagonal cracks)."""
+    ny, nx = blocked.shape
+    j, i = int(np.floor(x0)), int(np.floor(y0))
+    je, ie = int(np.floor(x1)), int(np.floor(y1))
+    dx, dy = x1 - x0, y1 - y0
+    sx = 1 if dx > 0 else -1
+    sy = 1 if dy > 0 else -1
+    tdx = abs(1.0 / dx) if dx != 0 else np.inf
+    tdy = abs(1.0 / dy) if dy != 0 else np.inf
+    tx = ((j + 1 - x0) if dx > 0 else (x0 - j)) * tdx if dx != 0 else np.inf
+    ty = ((i + 1 - y0) if dy > 0 else (y0 - i)) * tdy if dy != 0 else np.inf
+    n = abs(je - j) + abs(ie - i)
+    for _ in range(n + 2):
+        if i == ie and j == je:
+            return True
+        if abs(tx - ty) < 1e-9:  # through a corner: both neighbours, then the diagonal
+            for ci, cj in ((i, j + sx), (i + sy, j)):
+                if not (ci == ie and cj == je) and 0 <= ci < ny and 0 <= cj < nx and blocked[ci, cj]:
+                    return False
+            i += sy
+            j += sx
+            tx += tdx
+            ty += tdy
+        elif tx < ty:
+            j += sx
+            tx += tdx
+        else:
+            i += sy
+            ty += tdy
+        if i == ie and j == je:
+            return True
+        if i < 0 or j < 0 or i >= ny or j >= nx:
+            return False
+        if blocked[i, j]:
+            return False
+    return True
+
+
+@njit(**_opts)
+def _crosses(ax, ay, bx, by, cx, cy, dx, dy):
+    """Do segments ab and cd cross (proper intersection)?"""
+    d1 = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    d2 = (bx - ax) * (dy - ay) - (by - ay) * (dx - ax)
+    d3 = (dx - cx) * (ay - cy) - (dy - cy) * (ax - cx)
+    d4 = (dx - cx) * (by - cy) - (dy - cy) * (bx - cx)
+    return d1 * d2 < 0 and d3 * d4 < 0
+
+
+@njit(**_opts)
+def visible_nodes(blocked, origin, cell, p, nodes, doors, closed, out):
+    """out[k]: node k is in line of sight of point p (2,) on the grid, crossing none of the segments ``doors``
+    (d, 4) whose ``closed`` flag is set (the door leaves where they are now)."""
+    x0, y0 = (p[0] - origin[0]) / cell, (p[1] - origin[1]) / cell
+    for k in range(nodes.shape[0]):
+        ok = grid_los(blocked, x0, y0, (nodes[k, 0] - origin[0]) / cell, (nodes[k, 1] - origin[1]) / cell)
+        if ok:
+            for d in range(doors.shape[0]):
+                if closed[d] and _crosses(p[0], p[1], nodes[k, 0], nodes[k, 1], doors[d, 0], doors[d, 1],
+                                          doors[d, 2], doors[d, 3]):
+                    ok = False
+                    break
+        out[k] = ok
+
+
+@njit(**_opts)
+def _door_factor(ax, ay, bx, by, doors, aperture):
+    f = 1.0
+    for d in range(doors.shape[0]):
+        if aperture[d] < 1.0 and _crosses(ax, ay, bx, by, doors[d, 0], doors[d, 1], doors[d, 2], doors[d, 3]):
+            f *= aperture[d]
+    return f
+
+
+@njit(**_opts)
+def shortest_path(s, lis, vis_s, vis_l, nodes, dist, pred, chain):
+    """The shortest open path s -> a ... b -> lis (2-D points) through nodes seen from each end. Writes the node
+    indices into chain and returns (their count, length); (0, inf) when there is none."""
+    best, ba, bb = np.inf, -1, -1
+    N = nodes.shape[0]
+    ds = np.empty(N)
+    dl = np.empty(N)
+    for k in range(N):
+        ds[k] = np.hypot(nodes[k, 0] - s[0], nodes[k, 1] - s[1]) if vis_s[k] else np.inf
+        dl[k] = np.hypot(nodes[k, 0] - lis[0], nodes[k, 1] - lis[1]) if vis_l[k] else np.inf
+    for a in range(N):
+        if ds[a] == np.inf:
+            continue
+        for b in range(N):
+            if dl[b] == np.inf:
+                continue
+            t = ds[a] + dist[a, b] + dl[b]
+            if t < best:
+                best, ba, bb = t, a, b
+    if ba < 0:
+        return 0, np.inf
+    m = 0
+    j = bb
+    while j != ba and m < len(chain) - 1:
+        chain[m] = j
+        m += 1
+        j = pred[ba, j]
+        if j < 0:
+            return 0, np.inf
+    chain[m] = ba
+    m += 1
+    chain[:m] = chain[:m][::-1].copy()
+    return m, best
+
+
+@njit(**_opts)
+def trace_paths(idx, pos, lis, vis_src, vis_l, blocked, origin, cell, nodes, dist, pred, leaves, doors, aperture,
+                bands, c_sound, bend_loss, on, length, last, first, amp):
+    """For the sources ``idx``: whether they reach the listener along a bent path (no line of sight on the slice
+    and a path exists), its 2-D length, its last and first bend points (2,) and amplitude per band (diffraction at
+    every bend x the square root of the doorways' aperture fractions)."""
+    chain = np.empty(64, np.int64)
+    lx, ly = (lis[0] - origin[0]) / cell, (lis[1] - origin[1]) / cell
+    for i in idx:
+        s = pos[i, :2]
+        sees = grid_los(blocked, (s[0] - origin[0]) / cell, (s[1] - origin[1]) / cell, lx, ly)
+        if sees:
+            for d in range(leaves.shape[0]):
+                if _crosses(s[0], s[1], lis[0], lis[1], leaves[d, 0], leaves[d, 1], leaves[d, 2], leaves[d, 3]):
+                    sees = False
+                    break
+        on[i] = False
+        if sees or nodes.shape[0] == 0:
+            continue
+        m, L = shortest_path(s, lis[:2], vis_src[i], vis_l, nodes, dist, pred, chain)
+        if m == 0:
+            continue
+        on[i] = True
+        length[i] = L
+        first[i, 0], first[i, 1] = nodes[chain[0], 0], nodes[chain[0], 1]
+        last[i, 0], last[i, 1] = nodes[chain[m - 1], 0], nodes[chain[m - 1], 1]
+        f = 1.0
+        for b in range(len(bands)):
+            amp[i, b] = 0.0
+        for k in range(m + 1):  # legs s -> n0, n0 -> n1, ..., n_{m-1} -> lis
+            px, py = (s[0], s[1]) if k == 0 else (nodes[chain[k - 1], 0], nodes[chain[k - 1], 1])
+            qx, qy = (lis[0], lis[1]) if k == m else (nodes[chain[k], 0], nodes[chain[k], 1])
+            f *= _door_factor(px, py, qx, qy, doors, aperture)
+            if bend_loss and k < m:  # the bend at node k: detour over the line between its neighbours
+                rx, ry = (lis[0], lis[1]) if k == m - 1 else (nodes[chain[k + 1], 0], nodes[chain[k + 1], 1])
+                delta = np.hypot(qx - px, qy - py) + np.hypot(rx - qx, ry - qy) - np.hypot(rx - px, ry - py)
+                for b in range(len(bands)):
+                    amp[i, b] += min(10.0 * np.log10(1.0 + 40.0 * max(delta, 0.0) * bands[b] / c_sound),
+                                     MAX_BEND_LOSS_DB)
+        for b in range(len(bands)):
+            amp[i, b] = 10.0 ** (-amp[i, b] / 20.0) * np.sqrt(f)
+
+
+@dataclass
+class PathResult:
+    """One source's path to a listener: ``points`` (k, 2) from the source to the listener inclusive, ``length``
+    (2-D, m), ``amplitude`` (9,) per band (diffraction x doors), ``doors`` the energy factor of the doorways."""
+
+    points: np.ndarray
+    length: float
+    amplitude: np.ndarray
+    doors: float
+
+
+def bend_losses(points: np.ndarray, model: str = "fresnel", c: float = 343.0) -> np.ndarray:
+    """Amplitude factor (9,) per band of the bends of a polyline (k, 2): at every interior point, the Fresnel number
+    of its detour over the line between its neighbours, 10 log10(1 + 20 N) dB, at most 25 dB a bend."""
+    out = np.ones(len(BANDS))
+    if model == "none" or len(points) < 3:
+        return out
+    loss = np.zeros(len(BANDS))
+    for k in range(1, len(points) - 1):
+        p, q, r = points[k - 1], points[k], points[k + 1]
+        delta = np.hypot(*(q - p)) + np.hypot(*(r - q)) - np.hypot(*(r - p))
+        loss += np.minimum(10 * np.log10(1 + 20 * 2 * max(delta, 0.0) * BANDS / c), MAX_BEND_LOSS_DB)
+    return 10 ** (-loss / 20)
+
+
+def _segments_cross(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(m,) do segments p[i] -> q[i] cross the segment a -> b (proper intersection)?"""
+    d1 = (q[:, 0] - p[:, 0]) * (a[1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (a[0] - p[:, 0])
+    d2 = (q[:, 0] - p[:, 0]) * (b[1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (b[0] - p[:, 0])
+    d3 = (b[0] - a[0]) * (p[:, 1] - a[1]) - (b[1] - a[1]) * (p[:, 0] - a[0])
+    d4 = (b[0] - a[0]) * (q[:, 1] - a[1]) - (b[1] - a[1]) * (q[:, 0] - a[0])
+    return (d1 * d2 < 0) & (d3 * d4 < 0)
+
+
+class PathGraph:
+    """The baked slice, nodes, edges and shortest paths of a scene (see the module docstring)."""
+
+    def __init__(self, scene, cell: float = 0.1, height: float = 1.5, caster=None):
+        from sonicverse_core.geometry.raycast import SceneRayCaster
+
+        self.scene, self.cell = scene, float(cell)
+        caster = caster or SceneRayCaster(scene)
+        lo, hi = scene.bounds[0, :2], scene.bounds[1, :2]
+        c = self.cell
+        self.origin = np.floor(lo / c) * c - c
+        self.shape = (int(np.ceil((hi[1] - self.origin[1]) / c)) + 2, int(np.ceil((hi[0] - self.origin[0]) / c)) + 2)
+        self.z = scene.floor_z + height
+        self.blocked = self._slice(caster)
+        self.static_nodes = self._corners()
+        self.doors = [d for d in scene.doors]
+        self.door_segments = np.array([self._doorway(d) for d in self.doors], float).reshape(-1, 4)
+        self.nodes = self.static_nodes
+        self._edges()
+        self._leaf_key = None
+        # two nodes by every door leaf's free end, one on each side (moved with the leaf by refresh)
+        self.nodes = np.vstack([self.static_nodes, np.zeros((2 * len(self.doors), 2))])
+        self.refresh()
+
+    # --- bake ---------------------------------------------------------------------------------------------------
+    def _slice(self, caster) -> np.ndarray:
+        from scipy import ndimage
+
+        ny, nx = self.shape
+        c, o = self.cell, self.origin
+        blocked = np.zeros((ny, nx), bool)
+        ys = o[1] + (np.arange(ny) + 0.5) * c
+        xs = o[0] + (np.arange(nx) + 0.5) * c
+        x_end, y_end = o[0] + nx * c, o[1] + ny * c
+        rows = np.c_[np.full(ny, o[0]), ys, np.full(ny, self.z)], np.c_[np.full(ny, x_end), ys, np.full(ny, self.z)]
+        cols = np.c_[xs, np.full(nx, o[1]), np.full(nx, self.z)], np.c_[xs, np.full(nx, y_end), np.full(nx, self.z)]
+        mesh = scene_mesh = self.scene.static_mesh()
+        tri = scene_mesh.vertices[mesh.faces]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        for (a, b), along in ((rows, 0), (cols, 1)):
+            cr = caster.crossings(a, b, include_dynamic=False, max_hits=4096)
+            if len(cr.ray) == 0:
+                continue
+            # cell units along the ray; +0.01 cell: a surface on a cell boundary falls in the same cell on every
+            # row (Embree's float32 distances would otherwise scatter it over both, making a jagged wall)
+            u = (a[cr.ray, along] + cr.distance - o[along]) / c + 0.01
+            k = np.clip(u.astype(int), 0, (nx, ny)[along] - 1)
+            i, j = (cr.ray, k) if along == 0 else (k, cr.ray)
+            blocked[i, j] = True
+            # inside closed solids: from a face the ray enters (against its outward normal) to the next face of
+            # the same part, which it leaves (a panel or an inward-facing room shell fills nothing)
+            enter = normals[cr.face, along] < 0
+            order = np.lexsort((cr.distance, cr.part, cr.ray))
+            r, p, e, kk = cr.ray[order], cr.part[order], enter[order], k[order]
+            pair = (r[:-1] == r[1:]) & (p[:-1] == p[1:]) & e[:-1] & ~e[1:]
+            for q in np.flatnonzero(pair):
+                if along == 0:
+                    blocked[r[q], kk[q]:kk[q + 1] + 1] = True
+                else:
+                    blocked[kk[q]:kk[q + 1] + 1, r[q]] = True
+        free = ~blocked
+        labels, n = ndimage.label(free)  # 4-connected
+        if n:
+            edt = ndimage.distance_transform_edt(free) * c
+            widest = ndimage.maximum(edt, labels, np.arange(1, n + 1))
+            border = np.unique(np.r_[labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+            keep = np.asarray(widest) >= MIN_POCKET
+            inside = keep.copy()
+            inside[border[border > 0] - 1] = False
+            if inside.any():  # an enclosure: the outside of the building is not part of it
+                keep = inside
+            blocked = ~np.r_[False, keep][labels]
+        return blocked
+
+    def _corners(self) -> np.ndarray:
+        b = self.blocked
+        free = ~b
+        pad = np.pad(b, 1, constant_values=True)
+        corner = np.zeros_like(b)
+        ny, nx = b.shape
+        for di in (-1, 1):
+            for dj in (-1, 1):
+                diag = pad[1 + di:1 + di + ny, 1 + dj:1 + dj + nx]
+                side_i = pad[1 + di:1 + di + ny, 1:1 + nx]
+                side_j = pad[1:1 + ny, 1 + dj:1 + dj + nx]
+                corner |= free & diag & ~side_i & ~side_j
+        ij = np.argwhere(corner)
+        if len(ij) > MAX_NODES:  # thin out (cluttered mesh scenes): keep a node every few cells
+            step = int(np.ceil(np.sqrt(len(ij) / MAX_NODES)))
+            _, keep = np.unique(ij // (2 * step), axis=0, return_index=True)
+            ij = ij[np.sort(keep)][:MAX_NODES]
+        return self.origin + (ij[:, ::-1] + 0.5) * self.cell
+
+    @staticmethod
+    def _doorway(door) -> tuple:
+        a = np.radians(door.closed_yaw)
+        h = np.asarray(door.hinge, float)
+        return (*h, *(h + door.width * np.array([np.cos(a), np.sin(a)])))
+
+    def _edges(self) -> None:
+        N = len(self.nodes)
+        vis = np.zeros(N, bool)
+        none = np.zeros((0, 4))
+        rows, cols = [], []
+        for k in range(N):
+            visible_nodes(self.blocked, self.origin, self.cell, self.nodes[k], self.nodes[k + 1:], none,
+                          np.zeros(0, bool), vis[: N - k - 1])
+            m = np.flatnonzero(vis[: N - k - 1]) + k + 1
+            rows.append(np.full(len(m), k))
+            cols.append(m)
+        self.edge_i = np.concatenate(rows) if rows else np.zeros(0, int)
+        self.edge_j = np.concatenate(cols) if cols else np.zeros(0, int)
+        e = self.nodes[self.edge_j] - self.nodes[self.edge_i]
+        self.edge_len = np.hypot(e[:, 0], e[:, 1])
+
+    # --- doors --------------------------------------------------------------------------------------------------
+    def apertures(self) -> np.ndarray:
+        """Energy fraction of every doorway left open by its leaf: 2 sin(theta / 2), at most 1 (theta = 90 deg x the
+        open fraction)."""
+        return np.array([min(1.0, 2 * np.sin(np.radians(45.0 * d.open_fraction))) for d in self.doors])
+
+    def leaf_segments(self) -> np.ndarray:
+        """(d, 4) every door leaf where it is now, hinge to free end (a closed leaf is its doorway)."""
+        out = np.zeros((len(self.doors), 4))
+        for k, d in enumerate(self.doors):
+            a = np.radians(d.closed_yaw + d.swing * 90.0 * d.open_fraction)
+            h = np.asarray(d.hinge, float)
+            out[k] = (*h, *(h + d.width * np.array([np.cos(a), np.sin(a)])))
+        return out
+
+    def refresh(self) -> bool:
+        """Follow the doors: apertures, the leaves as obstacles, the nodes by their free ends, the edges they cut or
+        add, and the shortest paths, when a leaf moved since the last call; True when something changed."""
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import shortest_path as sp
+
+        self.aperture = self.apertures()
+        leaves = self.leaf_segments()
+        key = np.round(leaves, 4).tobytes()
+        if key == self._leaf_key:
+            return False
+        self._leaf_key = key
+        self.leaves = leaves
+        self.blocking = np.ones(len(leaves), bool)
+        ns, D = len(self.static_nodes), len(self.doors)
+        self.node_ok = np.ones(ns + 2 * D, bool)
+        rows, cols, lens = [self.edge_i], [self.edge_j], [self.edge_len]
+        if D:
+            p, q = self.static_nodes[self.edge_i], self.static_nodes[self.edge_j]
+            cut = np.zeros(len(self.edge_i), bool)
+            for x0, y0, x1, y1 in leaves:
+                cut |= _segments_cross(p, q, np.array([x0, y0]), np.array([x1, y1]))
+            rows, cols, lens = [self.edge_i[~cut]], [self.edge_j[~cut]], [self.edge_len[~cut]]
+            vis = np.zeros(ns + 2 * D, bool)
+            for k, (x0, y0, x1, y1) in enumerate(leaves):
+                v = np.array([x1 - x0, y1 - y0]) / max(np.hypot(x1 - x0, y1 - y0), 1e-9)
+                nrm = np.array([-v[1], v[0]])
+                for side, sgn in enumerate((1.0, -1.0)):
+                    t = ns + 2 * k + side
+                    self.nodes[t] = np.array([x1, y1]) + 0.5 * self.cell * v + sgn * 0.7 * self.cell * nrm
+                    gi, gj = ((self.nodes[t] - self.origin) / self.cell)[::-1].astype(int)
+                    inside = 0 <= gi < self.shape[0] and 0 <= gj < self.shape[1]
+                    self.node_ok[t] = inside and not self.blocked[gi, gj]
+            for t in range(ns, ns + 2 * D):
+                if not self.node_ok[t]:
+                    continue
+                visible_nodes(self.blocked, self.origin, self.cell, self.nodes[t], self.nodes, leaves,
+                              self.blocking, vis)
+                vis &= self.node_ok
+                vis[: t + 1] &= np.arange(t + 1) < ns  # each tip-tip pair once
+                m = np.flatnonzero(vis)
+                m = m[m != t]
+                rows.append(np.full(len(m), t))
+                cols.append(m)
+                lens.append(np.hypot(*(self.nodes[m] - self.nodes[t]).T))
+        N = len(self.nodes)
+        if N == 0:
+            self.dist, self.pred = np.zeros((0, 0)), np.zeros((0, 0), np.int32)
+            return True
+        i, j, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(lens)
+        m = csr_matrix((w + 1e-9, (i, j)), shape=(N, N))
+        dist, pred = sp(m, method="D", directed=False, return_predecessors=True)
+        self.dist, self.pred = dist, pred.astype(np.int32)
+        return True
+
+    # --- queries ------------------------------------------------------------------------------------------------
+    def grid_point(self, p) -> tuple[float, float]:
+        return (p[0] - self.origin[0]) / self.cell, (p[1] - self.origin[1]) / self.cell
+
+    def line_of_sight(self, a, b) -> bool:
+        """Open line of sight on the slice between 2-D points (walls block; furniture under ear height does not),
+        past every door leaf."""
+        if not grid_los(self.blocked, *self.grid_point(a), *self.grid_point(b)):
+            return False
+        return not any(_crosses(a[0], a[1], b[0], b[1], *s) for s in self.leaves)
+
+    def visible(self, p) -> np.ndarray:
+        out = np.zeros(len(self.nodes), bool)
+        if len(self.nodes):
+            visible_nodes(self.blocked, self.origin, self.cell, np.asarray(p[:2], float), self.nodes,
+                          self.leaves, self.blocking, out)
+            out &= self.node_ok
+        return out
+
+    def path(self, s, lis, vis_s=None, vis_l=None, model: str = "fresnel") -> PathResult | None:
+        """The shortest open path between 2-D points s and lis (None when there is none), with its losses."""
+        s, lis = np.asarray(s[:2], float), np.asarray(lis[:2], float)
+        if len(self.nodes) == 0:
+            return None
+        vis_s = self.visible(s) if vis_s is None else vis_s
+        vis_l = self.visible(lis) if vis_l is None else vis_l
+        chain = np.empty(64, np.int64)
+        m, length = shortest_path(s, lis, vis_s, vis_l, self.nodes, self.dist, self.pred, chain)
+        if m == 0:
+            return None
+        pts = np.vstack([s, self.nodes[chain[:m]], lis])
+        doors = 1.0
+        for p, q in zip(pts[:-1], pts[1:]):
+            doors *= _door_factor(p[0], p[1], q[0], q[1], self.door_segments, self.aperture)
+        return PathResult(pts, float(length), bend_losses(pts, model) * np.sqrt(doors), doors)
+
+
+_CACHE: OrderedDict = OrderedDict()
+
+
+def path_graph(scene, cell: float = 0.1, height: float = 1.5, caster=None) -> PathGraph:
+    """The scene's path graph, baked once per static structure, door layout, cell and height (8 kept)."""
+    doors = tuple((d.name, tuple(np.round(d.hinge, 4)), round(d.closed_yaw, 3), round(d.width, 4))
+                  for d in scene.doors)
+    key = (scene.static_hash(), doors, cell, height)
+    g = _CACHE.get(key)
+    if g is None:
+        g = PathGraph(scene, cell, height, caster)
+        _CACHE[key] = g
+        while len(_CACHE) > 8:
+            _CACHE.popitem(last=False)
+    _CACHE.move_to_end(key)
+    if g.scene is not scene:  # the same structure in another scene object: its own doors
+        g = copy.copy(g)
+        g.scene, g.doors, g._leaf_key, g.nodes = scene, list(scene.doors), None, g.nodes.copy()
+        g.refresh()
+    return g
+
+
+class PathState:
+    """The renderer's propagation-path subsystem: the scene's :class:`PathGraph`, the nodes each source sees
+    (shared by listeners, kept until the source moves), and per listener (arrays in its state dict) each source's
+    path, recomputed when an end moved more than ``tolerance`` or a door moved, at most ``budget`` a block.
+
+    :meth:`apply` turns a block's straight-line transmission (the occlusion subsystem's per-band target) into what
+    the direct renderer plays: per source, the path and the transmission added in energy and heard from a virtual
+    source blended between the path's last bend and the source by their energies, at the blended length; the
+    source's forward turned so that its directivity acts on the path's first leg."""
+
+    KEYS = ("path_on", "path_len", "path_last", "path_first", "path_amp", "path_seg", "path_rel")
+
+    def __init__(self, graph: PathGraph, diffraction: str = "fresnel", tolerance: float = 0.02, budget: int = 64):
+        self.graph, self.tolerance, self.budget = graph, tolerance, budget
+        self.bend_loss = diffraction != "none"
+        self._version = None
+        self._src_at = np.zeros((0, 3))
+        self._vis = np.zeros((0, len(graph.nodes)), bool)
+        self.stats = {"paths": 0, "path_queries": 0}
+
+    def grow(self, st: dict | None, cap: int) -> None:
+        """Room for ``cap`` sources (the renderer's state, or one listener's state dict)."""
+        from sonicverse_core.acoustics.renderer import _grown
+
+        if st is None:
+            self._src_at = _grown(self._src_at, (cap, 3), np.float64, np.nan)
+            self._vis = _grown(self._vis, (cap, len(self.graph.nodes)), bool)
+            return
+        for key, shape, dtype, fill in (("path_on", (cap,), bool, False), ("path_len", (cap,), np.float64, 0.0),
+                                        ("path_last", (cap, 2), np.float64, 0.0),
+                                        ("path_first", (cap, 2), np.float64, 0.0),
+                                        ("path_amp", (cap, len(BANDS)), np.float64, 0.0),
+                                        ("path_seg", (cap, 6), np.float64, np.nan),
+                                        ("path_rel", (cap, 3), np.float64, 0.0)):
+            st[key] = _grown(st.get(key), shape, dtype, fill)
+        st.setdefault("vis_l", np.zeros(len(self.graph.nodes), bool))
+        st.setdefault("vis_l_at", np.full(3, np.nan))
+        st.setdefault("path_version", None)
+
+    def update(self, st: dict, pos: np.ndarray, lis: np.ndarray) -> None:
+        from sonicverse_core.acoustics.kernels import segment_motion
+
+        g, n = self.graph, len(pos)
+        version = g.scene.dynamic_version
+        if version != self._version:  # a door moved: new apertures, maybe new shortest paths; recompute everything
+            g.refresh()
+            self._version = version
+            self._src_at[:] = np.nan
+        if st["path_version"] != version:
+            st["path_version"] = version
+            st["path_seg"][:] = np.nan
+            st["vis_l_at"][:] = np.nan
+        if not (np.max(np.abs(st["vis_l_at"] - lis)) <= self.tolerance):  # NaN: never computed
+            g_vis = st["vis_l"]
+            if len(g.nodes):
+                visible_nodes(g.blocked, g.origin, g.cell, lis[:2].astype(np.float64), g.nodes, g.leaves,
+                              g.blocking, g_vis)
+                g_vis &= g.node_ok
+            st["vis_l_at"][:] = lis
+        moved = np.empty(n)
+        segment_motion(pos, lis, st["path_seg"][:n], moved)
+        todo = np.flatnonzero(moved > self.tolerance)
+        if len(todo) > self.budget:
+            todo = todo[np.argsort(-moved[todo], kind="stable")[: self.budget]]
+        if len(todo) == 0:
+            return
+        stale = todo[~(np.max(np.abs(self._src_at[todo] - pos[todo]), axis=1) <= self.tolerance)]
+        for i in stale:  # the nodes a source sees, kept while it stays within the tolerance
+            if len(g.nodes):
+                visible_nodes(g.blocked, g.origin, g.cell, pos[i, :2].astype(np.float64), g.nodes, g.leaves,
+                              g.blocking, self._vis[i])
+                self._vis[i] &= g.node_ok
+            self._src_at[i] = pos[i]
+        trace_paths(todo.astype(np.int64), pos, lis.astype(np.float64), self._vis, st["vis_l"], g.blocked, g.origin,
+                    g.cell, g.nodes, g.dist, g.pred, g.leaves, g.door_segments, g.aperture, BANDS, 343.0,
+                    self.bend_loss, st["path_on"], st["path_len"], st["path_last"], st["path_first"], st["path_amp"])
+        st["path_seg"][todo] = np.concatenate([pos[todo], np.broadcast_to(lis, (len(todo), 3))], axis=1)
+        self.stats["path_queries"] += len(todo)
+
+    def apply(self, st: dict, pos: np.ndarray, fwd: np.ndarray, lis: np.ndarray, transmission: np.ndarray,
+              rolloff: tuple, smoothing: float, fresh: np.ndarray):
+        """(per-band target (n, 9), emitter positions (n, 3), forwards (n, 3)) for this block; ``rolloff``: the
+        renderer's distance-law parameters (mode, d0, max distance, near-field factor)."""
+        n = len(pos)
+        target, eff, f = transmission.copy(), pos.copy(), fwd.copy()
+        self.stats["paths"] = combine_paths(st["path_on"][:n], pos, fwd, np.asarray(lis, np.float64), transmission,
+                                            st["path_len"][:n], st["path_last"][:n], st["path_first"][:n],
+                                            st["path_amp"][:n], st["path_rel"][:n], fresh, float(smoothing or 0.0),
+                                            *rolloff, target, eff, f)
+        return target, eff, f
+
+
+@njit(**_opts)
+def _unit(v):
+    n = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    if n < 1e-9:
+        return v * 0.0
+    return v / n
+
+
+@njit(**_opts)
+def combine_paths(on, pos, fwd, lis, trans, plen, last, first, pamp, rel, fresh, k, mode, d0, D, near_k,
+                  target, eff, f):
+    """Per source heard along a path: the path (amplitude pamp, 2-D length plen, last bend, first bend) and the
+    straight-line transmission added in energy per band, heard from a virtual source at the energy-weighted blend
+    of their directions and lengths (smoothed towards it by k per block unless fresh); the forward turned by the
+    rotation taking the blended emission direction to the one the virtual source implies, so directivity acts on
+    the path's first leg. Sources without a path keep their position (rel is reset to the straight line).
+    Returns how many sources were heard along a path."""
+    count = 0
+    nb = trans.shape[1]
+    for i in range(pos.shape[0]):
+        straight = pos[i] - lis
+        if not on[i]:
+            rel[i] = straight
+            continue
+        count += 1
+        d = np.sqrt(straight[0] ** 2 + straight[1] ** 2 + straight[2] ** 2)
+        dz = straight[2]
+        L2 = plen[i]
+        Lp = np.sqrt(L2 * L2 + dz * dz)
+        lx, ly = last[i, 0] - lis[0], last[i, 1] - lis[1]
+        r_last = np.sqrt(lx * lx + ly * ly)
+        u_p = _unit(np.array([lx, ly, dz * r_last / max(L2, 1e-9)]))
+        u_t = _unit(straight)
+        gp, gt = distance_gain_1(Lp, mode, d0, D, near_k), distance_gain_1(d, mode, d0, D, near_k)
+        w_p, w_t = 0.0, 0.0
+        for b in range(4, 7):
+            w_p += (gp * pamp[i, b]) ** 2
+            w_t += (gt * trans[i, b]) ** 2
+        w = max(w_p + w_t, 1e-30)
+        w_p, w_t = w_p / w, w_t / w
+        u = _unit(w_p * u_p + w_t * u_t)
+        Lb = w_p * Lp + w_t * d
+        gb = max(distance_gain_1(Lb, mode, d0, D, near_k), 1e-30)
+        for b in range(nb):
+            target[i, b] = np.sqrt((gp * pamp[i, b]) ** 2 + (gt * trans[i, b]) ** 2) / gb
+        rt = u * Lb
+        if fresh[i]:
+            rel[i] = rt
+        else:
+            rel[i] = rel[i] + (1.0 - k) * (rt - rel[i])
+        eff[i] = lis + rel[i]
+        # emission: along the first leg (path) or straight at the listener (transmission), blended
+        fx, fy = first[i, 0] - pos[i, 0], first[i, 1] - pos[i, 1]
+        e = _unit(np.array([fx, fy, -dz * np.sqrt(fx * fx + fy * fy) / max(L2, 1e-9)]))
+        e = _unit(w_p * e - w_t * u_t)
+        v = -_unit(rel[i])
+        # Rodrigues: the rotation taking e to v, applied to the forward
+        ax = np.array([e[1] * v[2] - e[2] * v[1], e[2] * v[0] - e[0] * v[2], e[0] * v[1] - e[1] * v[0]])
+        s = np.sqrt(ax[0] ** 2 + ax[1] ** 2 + ax[2] ** 2)
+        c = e[0] * v[0] + e[1] * v[1] + e[2] * v[2]
+        x = fwd[i]
+        if s < 1e-9:
+            if c > 0:
+                f[i] = x
+                continue
+            ax = np.array([-e[1], e[0], 0.0]) if abs(e[2]) < 0.9 else np.array([0.0, -e[2], e[1]])
+            s = 0.0
+        kx = _unit(ax)
+        kxx = np.array([kx[1] * x[2] - kx[2] * x[1], kx[2] * x[0] - kx[0] * x[2], kx[0] * x[1] - kx[1] * x[0]])
+        kd = kx[0] * x[0] + kx[1] * x[1] + kx[2] * x[2]
+        f[i] = x * c + kxx * s + kx * kd * (1.0 - c)
+    return count

@@ -1,0 +1,70 @@
+"""Reference rooms for sound between rooms (tests, ``bench fidelity``, and anyone checking the renderer):
+
+- ``builtin:l-room`` an L-shaped room (the square [0, 6] x [0, 6] without its [3, 6] x [3, 6] quarter), 3 m high;
+- ``builtin:two-rooms?door=open|closed|sealed`` two 4 x 4 x 3 m rooms side by side, joined at x = 4 by a 0.1 m
+  stud partition (``Sheetrock``, 10 kg/m^2) with a 0.9 x 2.1 m doorway in its middle (a hinged ``door`` leaf, 8
+  kg/m^2, open or closed), or with no doorway at all (sealed).
+
+Walls, floor and ceiling are boxes 0.2 m thick (the partition 0.1 m), so they are solid for rays, rooms, probes
+and paths alike. Surfaces: plaster walls, parquet floor, smooth plaster ceiling.
+"""
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from sonicverse_core.errors import SceneSpecError
+from sonicverse_core.scene.model import Door, Room, Scene, StaticPart, StructureKind
+
+WALLS, FLOOR, CEILING = "PlasterRough", "ParquetOnConcrete", "PlasterSmooth"
+PARTITION, DOOR = "Sheetrock", "WoodPanel"
+T = 0.2  # outer walls, floor, ceiling (m)
+T_PARTITION = 0.1
+DOOR_WIDTH, DOOR_HEIGHT = 0.9, 2.1
+
+
+def _box(lo, hi) -> trimesh.Trimesh:
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    m = trimesh.creation.box(extents=hi - lo)
+    m.apply_translation((lo + hi) / 2)
+    return m
+
+
+def _shell(x1: float, y1: float, H: float, walls: list, room_of=None) -> list[StaticPart]:
+    parts = [StaticPart("floor", StructureKind.FLOOR, "floor", FLOOR, _box((-T, -T, -T), (x1 + T, y1 + T, 0))),
+             StaticPart("ceiling", StructureKind.CEILING, "ceiling", CEILING, _box((-T, -T, H), (x1 + T, y1 + T, H + T)))]
+    for k, (lo, hi, mat) in enumerate(walls):
+        parts.append(StaticPart(f"wall_{k}", StructureKind.WALL, "wall", mat, _box(lo, hi)))
+    return parts
+
+
+def l_room(size: float = 6.0, H: float = 3.0) -> Scene:
+    S, h = size, size / 2
+    walls = [((-T, -T, 0), (0, S + T, H), WALLS), ((-T, -T, 0), (S + T, 0, H), WALLS),
+             ((S, -T, 0), (S + T, h, H), WALLS), ((-T, S, 0), (h, S + T, H), WALLS),
+             ((h, h, 0), (S + T, S + T, H), WALLS)]  # the missing quarter, solid
+    room = Room("room", "living room", np.array([(0, 0), (S, 0), (S, h), (h, h), (h, S), (0, S)], float), 0.0, H)
+    return Scene("l-room", _shell(S, S, H, walls), [], [room], spec="builtin:l-room", mapping_name="explicit")
+
+
+def two_rooms(door: str = "open", L: float = 8.0, W: float = 4.0, H: float = 3.0) -> Scene:
+    if door not in ("open", "closed", "sealed"):
+        raise SceneSpecError(f"two-rooms: door must be open, closed or sealed, got '{door}'")
+    xm, t = L / 2, T_PARTITION / 2
+    y0, y1 = W / 2 - DOOR_WIDTH / 2, W / 2 + DOOR_WIDTH / 2
+    walls = [((-T, -T, 0), (0, W + T, H), WALLS), ((L, -T, 0), (L + T, W + T, H), WALLS),
+             ((-T, -T, 0), (L + T, 0, H), WALLS), ((-T, W, 0), (L + T, W + T, H), WALLS)]
+    if door == "sealed":
+        walls.append(((xm - t, 0, 0), (xm + t, W, H), PARTITION))
+    else:
+        walls += [((xm - t, 0, 0), (xm + t, y0, H), PARTITION), ((xm - t, y1, 0), (xm + t, W, H), PARTITION),
+                  ((xm - t, y0, DOOR_HEIGHT), (xm + t, y1, H), PARTITION)]
+    rooms = [Room("west", "living room", np.array([(0, 0), (xm - t, 0), (xm - t, W), (0, W)], float), 0.0, H),
+             Room("east", "bedroom", np.array([(xm + t, 0), (L, 0), (L, W), (xm + t, W)], float), 0.0, H)]
+    objects = []
+    if door != "sealed":
+        leaf = _box((0.0, -0.02, 0.0), (DOOR_WIDTH, 0.02, DOOR_HEIGHT - 0.01))
+        objects.append(Door("door", "door", DOOR, leaf, movable=False, hinge=(xm, y0), closed_yaw=90.0, swing=-1,
+                            open_fraction=1.0 if door == "open" else 0.0, rooms=("west", "east"), width=DOOR_WIDTH))
+    return Scene(f"two rooms ({door})", _shell(L, W, H, walls), objects, rooms,
+                 spec=f"builtin:two-rooms?door={door}", mapping_name="explicit")
