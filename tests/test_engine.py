@@ -256,3 +256,8 @@ def test_cli_bench_audio_reports_realtime_fraction(cli):
     assert res.returncode == 0, res.stderr
     d = json.loads(res.stdout)
     assert set(d["realtime_fraction"]) >= {"median", "p99"} and d["reference"]["realtime_fraction"]["median"] > 0
+    res = cli("bench", "audio", "--sources", "8", "--seconds", "0.3", "--scene", "builtin:two-rooms?door=open")
+    assert res.returncode == 0, res.stderr
+    d = json.loads(res.stdout)  # the subsystems a scene of two rooms needs, and what they did per listener
+    assert {"paths", "coupled_rooms"} <= set(d["subsystems"])
+    assert d["per_listener"]["room_reverbs_convolved"]["max"] == 1

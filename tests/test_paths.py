@@ -171,3 +171,17 @@ def test_a_source_round_the_corner_keeps_its_rooms_reverberant_level():
     path = np.hypot(*(np.array(src[:2]) - (3, 3))) + np.hypot(*(np.array(lis[:2]) - (3, 3)))
     barron = 10 * np.log10(31200 * T / V * np.exp(-0.04 * path / T))  # reflected energy only, no direct sound
     assert abs(G - barron) <= 3.0, (G, barron)
+
+
+def test_bench_fidelity_runs_both_simulators_and_the_sealed_rooms_meet_the_mass_law(tmp_path):
+    from app.bench.fidelity import bench_fidelity
+
+    d = bench_fidelity(rays=2000, quick=True, plot=str(tmp_path / "f.png"))
+    assert len(d["cases"]) == 3 and (tmp_path / "f.png").is_file()
+    for c in d["cases"]:
+        for k in ("G", "T30", "EDT", "C50", "DRR"):
+            assert len(c["ours"][k]) == len(c["pyroomacoustics"][k]) == 5
+        assert c["time_s"]["ours_render"] > 0 and c["time_s"]["pyroomacoustics"] > 0
+    round_the_corner = next(c for c in d["cases"] if "corner" in c["case"])
+    assert round_the_corner["vs_pyroomacoustics"]["G"]["met"]  # was 27 dB low before paths and room-aware sends
+    assert d["sealed"]["met"]

@@ -73,7 +73,8 @@ def _pra_material(name: str):
 def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays):
     import pyroomacoustics as pra
 
-    room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=_pra_material(walls),
+    mats = [_pra_material(m) for m in walls] if isinstance(walls, list) else _pra_material(walls)
+    room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=mats,
                                  ray_tracing=True, air_absorption=True)
     room.extrude(H, materials={"floor": _pra_material(floor), "ceiling": _pra_material(ceiling)})
     room.set_ray_tracing(n_rays=rays, receiver_radius=0.5)
@@ -123,11 +124,14 @@ def _cases():
         corners = [(0, 0), (L, 0), (L, W), (0, W)]
         yield name, spec, corners, H, (walls, floor, ceiling), src, lis, dims
     mats = (ref.WALLS, ref.FLOOR, ref.CEILING)
+    # the partition's faces (walls 1-3 and 7-9 of the outline) are the partition's material, as in our scene
+    two = ([ref.PARTITION if k in (1, 2, 3, 7, 8, 9) else ref.WALLS for k in range(len(TWO_ROOMS))], ref.FLOOR,
+           ref.CEILING)
     yield "L-room, line of sight", "builtin:l-room", L_ROOM, 3.0, mats, (5.0, 1.5, 1.5), (1.5, 1.5, 1.5), None
     yield "L-room, round the corner", "builtin:l-room", L_ROOM, 3.0, mats, (5.0, 1.5, 1.5), (1.5, 5.0, 1.5), None
-    yield ("two rooms, open door, line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, mats,
+    yield ("two rooms, open door, line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, two,
            (2.0, 2.6, 1.5), (6.0, 1.7, 1.5), None)
-    yield ("two rooms, open door, no line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, mats,
+    yield ("two rooms, open door, no line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, two,
            (2.0, 2.6, 1.5), (6.0, 0.6, 1.5), None)
 
 
