@@ -12,6 +12,8 @@ Knobs and references:
   time per block.
 * block size: a source moving at 2 m/s rendered at each block size vs block 16 (relative RMS difference); time
   per second of audio.
+* propagation paths' grid cell: path length and last-bend direction round the L-room's corner vs the exact
+  geometry; time to bake the scene's path graph.
 """
 from __future__ import annotations
 
@@ -252,11 +254,43 @@ def _blocks(quick: bool):
             "2 m/s (pose updated once per block); time: per second of audio", "rows": rows}
 
 
+def _path_cell(quick: bool):
+    """Propagation paths' grid: path length and arrival direction round the L-room's corner vs the exact geometry."""
+    from sonicverse_core.acoustics.paths import PathGraph
+    from sonicverse_core.scene.spec import load_scene
+
+    scene = load_scene("builtin:l-room")
+    rng = np.random.default_rng(0)
+    corner = np.array([3.0, 3.0])
+    # sources in the east arm, listeners in the north arm, out of each other's sight
+    src = np.c_[rng.uniform(4.0, 5.7, 40), rng.uniform(0.4, 2.6, 40)]
+    lis = np.c_[rng.uniform(0.4, 2.6, 40), rng.uniform(4.0, 5.7, 40)]
+    exact = np.linalg.norm(src - corner, axis=1) + np.linalg.norm(lis - corner, axis=1)
+    PathGraph(scene, 0.3).path(src[0], lis[0])  # compiles the kernels (once per machine: cached on disk)
+    rows = []
+    for cell in ((0.1, 0.2) if quick else (0.05, 0.1, 0.2, 0.3)):
+        g, t_bake = _timed(lambda: PathGraph(scene, cell))
+        t0 = time.perf_counter()
+        res = [g.path(s, li) for s, li in zip(src, lis)]
+        t_query = (time.perf_counter() - t0) / len(src)
+        ok = [r is not None for r in res]
+        length = np.array([r.length if r is not None else np.nan for r in res])
+        last = np.array([r.points[-2] if r is not None else (np.nan, np.nan) for r in res])
+        d_exact = np.degrees(np.arctan2(*(corner - lis).T[::-1]))
+        d_ours = np.degrees(np.arctan2(*(last - lis).T[::-1]))
+        rows.append({"setting": cell, "error": float(np.nanmean(np.abs(length / exact - 1))), "time_s": t_bake,
+                     "query_s": t_query, "found": float(np.mean(ok)),
+                     "direction_error_deg": float(np.nanmean(np.abs((d_ours - d_exact + 180) % 360 - 180)))})
+    return {"knob": "path_cell", "error_metric": "mean |path length / exact - 1| round the L-room's corner (40 "
+            "source-listener pairs out of sight of each other; direction error of the last bend in the row); "
+            "time: the scene's path graph bake", "rows": rows}
+
+
 def bench_accuracy(reference_rays: int = 1_000_000, quick: bool = False, plot: str | None = None) -> dict:
     from sonicverse_core.progress import progress
 
     steps = [lambda: _rays_and_bounces(reference_rays, quick), lambda: [_probes(quick)], lambda: [_hrtf(quick)],
-             lambda: [_early(quick)], lambda: [_reverb(quick)], lambda: [_blocks(quick)]]
+             lambda: [_early(quick)], lambda: [_reverb(quick)], lambda: [_blocks(quick)], lambda: [_path_cell(quick)]]
     knobs = [k for step in progress(steps, desc="accuracy knobs") for k in step()]
     for k in knobs:
         front = _pareto([(r["error"], r["time_s"]) for r in k["rows"]])

@@ -133,3 +133,25 @@ class RoomCoupling:
             m = (out < 0) & r.contains(xy)
             out[m] = k
         return out
+
+
+_CACHE: dict = {}
+
+
+def room_coupling(scene, graph, probes) -> RoomCoupling:
+    """The scene's :class:`RoomCoupling`, built once per structure, rooms and probes (8 kept; an env builds a
+    renderer per episode) and bound to this scene's doors."""
+    import copy
+
+    key = (scene.static_hash(), tuple((r.name, r.footprint.tobytes()) for r in scene.rooms),
+           tuple(np.round(np.r_[p.position, p.rt60], 4).tobytes() for p in probes or []))
+    c = _CACHE.get(key)
+    if c is None:
+        c = RoomCoupling(scene, graph, probes)
+        _CACHE[key] = c
+        while len(_CACHE) > 8:
+            _CACHE.pop(next(iter(_CACHE)))
+    if c.scene is not scene or c.graph is not graph:
+        c = copy.copy(c)
+        c.scene, c.graph, c._cache, c._rc = scene, graph, {}, None
+    return c

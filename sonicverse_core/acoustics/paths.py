@@ -8,10 +8,12 @@ Baked once per scene (:func:`path_graph`, cached in memory by the static structu
   person (the inside of a thick wall) are blocked too;
 * the nodes of a visibility graph: the convex corners of the free space (a free cell whose diagonal neighbour is
   blocked while the two cells beside both are free: wall ends, door jambs, room corners that turn outward);
-* its edges: node pairs in line of sight on the grid (exact cell traversal), weighted by length; every door's
-  doorway (the closed leaf's segment) is a portal, and edges that cross it remember which door;
-* all-pairs shortest paths over the edges of the doors that are not closed (recomputed when a door closes or
-  opens, a few milliseconds).
+* its edges: node pairs in line of sight on the grid (exact cell traversal), weighted by length;
+* the doors: each leaf, where it is now, is an obstacle (segment) that cuts the edges it crosses, with two more
+  nodes by its free end, one on each side; the doorway (the closed leaf's segment) is a portal whose aperture
+  scales the energy of paths through it;
+* all-pairs shortest paths (Dijkstra), recomputed with the leaves' edges when a door moves (milliseconds for a
+  home: 24 nodes in the default apartment).
 
 At run time (:class:`PathState`), for each source and listener without line of sight on the slice: the nodes each
 can see (cached per source and per listener until it moves), the shortest path S -> a ... b -> L over them, and

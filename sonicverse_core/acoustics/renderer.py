@@ -285,9 +285,9 @@ class AcousticRenderer:
             self._probe_vol = np.array([p.volume for p in self.probes])
             self.subsystems.append("late_reverb")
             if graph is not None and scene.rooms:  # each room excites its neighbours through doors and walls
-                from sonicverse_core.acoustics.coupling import RoomCoupling
+                from sonicverse_core.acoustics.coupling import room_coupling
 
-                self.coupling = RoomCoupling(scene, graph, self.probes)
+                self.coupling = room_coupling(scene, graph, self.probes)
                 self._src_room_at = np.full((0, 3), np.nan)
                 self._src_room = np.zeros(0, np.int64)
                 if len(scene.rooms) > 1:
