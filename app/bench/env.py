@@ -21,10 +21,12 @@ def _actions(rng, n, dim):
     return a
 
 
-def _run(env, actions, seed: int) -> float:
+def _run(env, actions, seed: int, desc: str = "") -> float:
+    from sonicverse_core.progress import progress
+
     env.reset(seed=seed)
     t0 = time.perf_counter()
-    for a in actions:
+    for a in progress(actions, len(actions), desc, enabled=bool(desc)):  # a bar on a terminal, else 4 log lines
         _, _, term, trunc, _ = env.step(a)
         if term or trunc:
             env.reset()
@@ -39,7 +41,7 @@ def bench_env(task: str = "AudioGoal", steps: int = 400, workers: int = 2, size:
     env = make_env(task, split="test", homes=1, sensors=sensors, width=size, height=size)
     actions = _actions(rng, steps, env.action_space.shape[0])
     _run(env, actions[:20], seed)  # warm-up: numba, GL context, bake cache
-    sps = _run(env, actions, seed)
+    sps = _run(env, actions, seed, "env steps")
     # breakdown: each part timed alone on the same env
     u = env
     w = u.home.world
@@ -97,7 +99,9 @@ def bench_vector(task: str, workers: int, steps: int, size: int, seed: int) -> d
             envs.step(_actions(rng, workers, dim))
         n = max(steps // workers, 50)
         t0 = time.perf_counter()
-        for _ in range(n):
+        from sonicverse_core.progress import progress
+
+        for _ in progress(range(n), n, f"{workers} workers' steps"):
             envs.step(_actions(rng, workers, dim))
         dt = time.perf_counter() - t0
     finally:

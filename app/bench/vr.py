@@ -47,8 +47,10 @@ def _stock(scene, size, frames) -> dict:
 
 def bench_vr(sizes, frames: int = 60, scene: str = "builtin:apartment", audio_seconds: float = 20.0,
              culling_scene: str = "builtin:apartment?seed=1", culling_levels=(0, 3)) -> dict:
+    from sonicverse_core.progress import progress
+
     out = {"scene": scene, "frames": frames, "target_hz": 90.0, "sizes": {}}
-    for w, h in sizes:
+    for w, h in progress(sizes, len(sizes), "view sizes"):
         fast, img_fast = _loop(scene, (w, h), frames)
         ms, img_ms = _loop(scene, (w, h), frames, msaa=True)  # same frames: the last views show the same pose
         stock = _stock(scene, (w, h), max(frames // 4, 8))

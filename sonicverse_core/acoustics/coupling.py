@@ -38,8 +38,16 @@ class RoomCoupling:
             rt = np.mean(mine, axis=0) if mine else rt_all
             self.A[k] = 0.161 * max(r.volume, 1.0) / np.maximum(rt, 0.05)
         self.walls = np.zeros((R, R, len(BANDS)))  # S tau through walls (and openings of mesh scenes)
+        # which room every cell of the path graph's slice is in (-1: none): a real-time lookup, not polygon tests
+        ny, nx = graph.shape
+        centres = graph.origin + (np.argwhere(np.ones((ny, nx), bool))[:, ::-1] + 0.5) * graph.cell
+        labels = np.full(ny * nx, -1)
+        for k, r in enumerate(self.rooms):
+            labels[(labels < 0) & r.contains(centres)] = k
+        self.labels = labels.reshape(ny, nx)
         self._slice_coupling()
         self._cache: dict = {}
+        self._version = None
 
     def _slice_coupling(self) -> None:
         g, R = self.graph, len(self.rooms)
@@ -113,6 +121,9 @@ class RoomCoupling:
     def transfer(self) -> np.ndarray:
         """(R, R, 9) amplitude: sqrt(E_l / E_s) for a source in room s heard in room l, the doors as they are now
         (cached per door state)."""
+        if self._version == self.scene.dynamic_version and self._cache:
+            return next(iter(self._cache.values()))
+        self._version = self.scene.dynamic_version
         key = tuple(np.round(self.graph.apertures(), 4))
         T = self._cache.get(key)
         if T is None:
@@ -127,11 +138,12 @@ class RoomCoupling:
         return T
 
     def room_of(self, xy: np.ndarray) -> np.ndarray:
-        """(n,) room index of points (n, 2), -1 outside every room."""
-        out = np.full(len(xy), -1)
-        for k, r in enumerate(self.rooms):
-            m = (out < 0) & r.contains(xy)
-            out[m] = k
+        """(n,) room index of points (n, 2) (the room of the slice's cell they are in), -1 outside every room."""
+        g = self.graph
+        ij = np.floor((np.asarray(xy, float)[:, ::-1] - g.origin[::-1]) / g.cell).astype(np.int64)
+        inside = np.all((ij >= 0) & (ij < np.array(g.shape)), axis=1)
+        out = np.full(len(ij), -1)
+        out[inside] = self.labels[ij[inside, 0], ij[inside, 1]]
         return out
 
 
@@ -153,5 +165,6 @@ def room_coupling(scene, graph, probes) -> RoomCoupling:
             _CACHE.pop(next(iter(_CACHE)))
     if c.scene is not scene or c.graph is not graph:
         c = copy.copy(c)
-        c.scene, c.graph, c._cache, c._rc = scene, graph, {}, None
+        c.scene, c.graph, c._cache, c._rc, c._version = scene, graph, {}, None, None
+        c.rooms = list(scene.rooms)  # the same rooms (the key), this scene's objects
     return c

@@ -581,7 +581,11 @@ class AcousticRenderer:
         key = st.get("probe_key")
         if key is None or np.max(np.abs(key - p)) > 0.05:
             d2 = np.sum((self._probe_pos - p) ** 2, axis=1)
-            room = self.scene.room_at(p[:2]) if self.scene is not None and self.scene.rooms else None
+            if getattr(self, "coupling", None) is not None:  # the slice's room labels: a lookup, not polygon tests
+                room = self.coupling.room_of(p[None, :2])[0]
+                room = self.coupling.rooms[room] if room >= 0 else None
+            else:
+                room = self.scene.room_at(p[:2]) if self.scene is not None and self.scene.rooms else None
             same = np.array([r is not None and r is room for r in self._probe_rooms]) if room is not None else None
             if same is not None and same.any():
                 d2 = np.where(same, d2, np.inf)
@@ -628,7 +632,9 @@ class AcousticRenderer:
             if self.coupling is not None:  # the listener's own room's probes (its neighbours come by coupling)
                 st["lis_room"] = int(self.coupling.room_of(lis.position[None, :2])[0])
                 if st["lis_room"] >= 0:
-                    mine = self.coupling.room_of(self._probe_pos[:, :2]) == st["lis_room"]
+                    if getattr(self, "_probe_room", None) is None:
+                        self._probe_room = self.coupling.room_of(self._probe_pos[:, :2])
+                    mine = self._probe_room == st["lis_room"]
                     if mine.any():
                         w = np.where(mine, w, 0.0)
             if len(w) > 2:  # the two nearest probes: each one mixed in costs a convolution per block
@@ -636,9 +642,8 @@ class AcousticRenderer:
             w /= w.sum()
             rt = w @ self._probe_rt
             vol = float(w @ self._probe_vol)
-            room = self.scene.room_at(lis.position[:2]) if self.scene is not None and self.scene.rooms else None
-            if room is not None and room.volume > 1.0:  # the room's own volume (a proxy box sees through doors)
-                vol = room.volume
+            if self.coupling is not None and st["lis_room"] >= 0 and self.coupling.rooms[st["lis_room"]].volume > 1:
+                vol = self.coupling.rooms[st["lis_room"]].volume  # the room's own (a proxy box sees through doors)
             lo, hi = float(np.mean(rt[3:6])), float(rt[7])  # 250 Hz-1 kHz and 4 kHz: the FDN's two fit points
             # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
             level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
