@@ -508,7 +508,7 @@ class PathState:
 
     def grow(self, st: dict | None, cap: int) -> None:
         """Room for ``cap`` sources (the renderer's state, or one listener's state dict)."""
-        from sonicverse_core.acoustics.renderer import _grown
+        from sonicverse_core.acoustics.sources import grown as _grown
 
         if st is None:
             self._src_at = _grown(self._src_at, (cap, 3), np.float64, np.nan)
