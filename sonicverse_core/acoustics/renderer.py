@@ -16,14 +16,20 @@ listeners are added):
   of every part crossed (once per part) multiplies per band. Rays are cast only for segments that moved or when
   the scene's dynamic state changed (a door), and only where some part's bounding box meets the segment; the
   result is smoothed across blocks.
+* Propagation paths (``paths.py``): a source without line of sight on the scene's ear-height slice reaches the
+  listener along the shortest open path round corners and through doorways (per-band diffraction at every bend,
+  door apertures); path and wall transmission add in energy and play from one emitter per source placed at their
+  energy-weighted blend of direction and length.
 * Early reflections: image sources (order 1 or 2) of the proxy box of the probe nearest the listener, from the
   actual source and listener positions, each a ramped fractional-delay tap encoded in second-order ambisonics in
   the head frame and decoded binaurally by least-squares spherical-harmonic HRTF filters.
 * Late reverb: per listener, partitioned convolution with a tail synthesised per probe (octave-band noise decaying
   at the probe's RT60 in each band, coloured by the HRTF set's diffuse field and given its interaural coherence per
-  band; no discrete echoes at the onset), or a cheaper FDN; the probes' outputs are mixed by inverse-distance
-  weights around the listener. Each source's send is delayed by its travel time plus the mixing time (sqrt(V) ms,
-  Polack), so the tail starts after the direct sound and the early reflections, and falls with distance (Barron).
+  band; no discrete echoes at the onset), or a cheaper FDN; the probes of the listener's room are mixed by
+  inverse-distance weights. Sources in other rooms send through the rooms' coupling (``coupling.py``: a per-band
+  energy balance through doors and walls), one send per room, filtered per band. Each source's send is delayed
+  by its travel time plus the mixing time (sqrt(V) ms, Polack), so the tail starts after the direct sound and the
+  early reflections, and falls with distance (Barron).
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
