@@ -105,8 +105,7 @@ def test_a_sound_heard_through_a_doorway_comes_from_the_doorway(two_rooms):
     src, lis, yaw = np.array([2.0, 0.6, 1.5]), np.array([5.0, 0.6, 1.5]), 90.0
     g = path_graph(scene)
     assert not g.line_of_sight(src, lis)
-    # the path itself (the early reflections and the tail, from the listener's room, are not what is asserted)
-    r = AcousticRenderer(scene, RenderConfig(late_reverb=False, early_reflections=False), probes=probes)
+    r = AcousticRenderer(scene, RenderConfig(), probes=probes)  # everything: path, reflections, tail
     r.add_source(_click(), position=src, loop=False)
     r.add_listener(lis, yaw=yaw)
     itd = _itd(r.render(0.1)[0])

@@ -187,6 +187,17 @@ class AcousticRenderer:
             self._refl = [wall_reflectance(p.box_materials) for p in self.probes]
             self._probe_rooms = [scene.room_at(p.position[:2]) if scene is not None and scene.rooms else None
                                  for p in self.probes]
+            # the image sources' box: the probe's proxy box within its room's footprint (rays from a probe that
+            # faces a doorway run on into the next room; the room's walls are where the reflections are)
+            self._er_box = []
+            for p, room in zip(self.probes, self._probe_rooms):
+                lo, hi = p.box_lo.copy(), p.box_hi.copy()
+                if room is not None:
+                    lo[:2] = np.maximum(lo[:2], room.footprint.min(0))
+                    hi[:2] = np.minimum(hi[:2], room.footprint.max(0))
+                    if np.any(hi <= lo) or np.any(p.position < lo) or np.any(p.position > hi):
+                        lo, hi = p.box_lo, p.box_hi
+                self._er_box.append((lo, hi))
             self._er_amp = {}
             self._amb_order = 2
             self._C = (self._amb_order + 1) ** 2
@@ -529,12 +540,11 @@ class AcousticRenderer:
         room, it has no images, and its room's sound arrives by the coupled late reverb)."""
         cfg, n, B = self.cfg, self._n, self.cfg.block
         k = self._nearest_probe(st, lis.position)
-        pr = self.probes[k]
         if k not in self._er_amp:
             self._er_amp[k] = image_amplitudes(self._refl[k], cfg.er_order)
         q, m, _ = lattice(cfg.er_order)
         delay, gain, Y = st["er_delay_new"][:n], st["er_gain_new"][:n], st["er_Y_new"][:n]
-        image_taps(np.ascontiguousarray(pos), pr.box_lo, pr.box_hi, q, m, self._er_amp[k], lis.position, R,
+        image_taps(np.ascontiguousarray(pos), *self._er_box[k], q, m, self._er_amp[k], lis.position, R,
                    *self._rolloff, np.ascontiguousarray(occ[:, MID].mean(1)), self._er_bulk, SPEED_OF_SOUND, delay,
                    gain, Y)
         fresh = st["fresh"][:n]
