@@ -70,9 +70,10 @@ def _pra_material(name: str):
                         scattering=m.scattering)
 
 
-def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays):
+def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0):
     import pyroomacoustics as pra
 
+    pra.random.seed(seed)  # its ray tracing draws from NumPy's and C++'s generators: the same run, the same numbers
     mats = [_pra_material(m) for m in walls] if isinstance(walls, list) else _pra_material(walls)
     room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=mats,
                                  ray_tracing=True, air_absorption=True)
@@ -197,7 +198,7 @@ def _sealed(rays: int) -> dict:
             "our_render_s": round(t, 2)}
 
 
-def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False) -> dict:
+def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0) -> dict:
     from sonicverse_core.progress import progress
 
     cases, seconds = [], 3.0
@@ -206,7 +207,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         todo = todo[1:2] + todo[4:5] + todo[6:7]
     for name, spec, corners, H, (walls, floor, ceiling), src, lis, dims in progress(todo, len(todo), "rooms"):
         t0 = time.perf_counter()
-        h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays)
+        h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed)
         t_peer = time.perf_counter() - t0
         h, t_bake, t_render = _ours(spec, src, lis, seconds)
         ours, peer = room_parameters(h), room_parameters(h_peer)
@@ -221,7 +222,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     sealed = _sealed(rays)
     met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
-           f"{rays} rays, receiver radius 0.5 m)", "sample_rate": FS, "cases": cases, "sealed": sealed,
+           f"{rays} rays, receiver radius 0.5 m, seed {seed})", "sample_rate": FS, "cases": cases, "sealed": sealed,
            "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}
     if plot:
         _plot(cases, plot)

@@ -134,6 +134,7 @@ def add_audio_commands(sub, bench_sub) -> None:
                     help="pyroomacoustics' rays (default: %(default)s)")
     bf.add_argument("--plot", type=A.out_file(".png"), help="write a PNG of ours vs the peer per parameter")
     bf.add_argument("--quick", action="store_true", help="three cases only")
+    bf.add_argument("--seed", type=A.seed, default=0, help="seed of the peer's ray tracing (default: %(default)s)")
     bf.add_argument("--json", action="store_true", help="(always JSON)")
     bf.set_defaults(func=cmd_bench_fidelity)
 
@@ -155,5 +156,5 @@ def cmd_bench_accuracy(a) -> int:
 def cmd_bench_fidelity(a) -> int:
     from app.bench.fidelity import bench_fidelity
 
-    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick)))
+    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed)))
     return 0
