@@ -64,7 +64,8 @@ class RoomCoupling:
         trans = material_arrays()[2]
         boundary = [m & ndimage.binary_dilation(g.blocked, np.ones((3, 3), bool)) for m in masks]
         door_rooms = {frozenset(d.rooms) for d in g.doors}
-        near = [ndimage.distance_transform_edt(~m) * g.cell for m in masks]
+        edt = [ndimage.distance_transform_edt(~m, return_indices=True) for m in masks]  # once per room
+        near = [d * g.cell for d, _ in edt]
         for a in range(R):
             for b in range(a + 1, R):
                 h = min(self.rooms[a].z_ceiling - self.rooms[a].z_floor, self.rooms[b].z_ceiling - self.rooms[b].z_floor)
@@ -81,7 +82,7 @@ class RoomCoupling:
                 # b; a ray that crosses nothing went through an opening (a door's, counted with the door)
                 pa = np.argwhere(shared[0])
                 pa = pa[np.linspace(0, len(pa) - 1, min(24, len(pa))).astype(int)]
-                _, (ib, jb) = ndimage.distance_transform_edt(~masks[b], return_indices=True)
+                ib, jb = edt[b][1]
                 pb = np.c_[ib[pa[:, 0], pa[:, 1]], jb[pa[:, 0], pa[:, 1]]]
                 xa = np.c_[g.origin + (pa[:, ::-1] + 0.5) * g.cell, np.full(len(pa), g.z)]
                 xb = np.c_[g.origin + (pb[:, ::-1] + 0.5) * g.cell, np.full(len(pb), g.z)]

@@ -210,27 +210,13 @@ def trace_paths(idx, pos, lis, vis_src, vis_l, blocked, origin, cell, nodes, dis
 
 @dataclass
 class PathResult:
-    """One source's path to a listener: ``points`` (k, 2) from the source to the listener inclusive, ``length``
-    (2-D, m), ``amplitude`` (9,) per band (diffraction x doors), ``doors`` the energy factor of the doorways."""
+    """One source's path to a listener: ``length`` (2-D, m), its ``last`` and ``first`` bends (2,) and its
+    ``amplitude`` (9,) per band (diffraction at every bend x the doorways' apertures)."""
 
-    points: np.ndarray
     length: float
+    last: np.ndarray
+    first: np.ndarray
     amplitude: np.ndarray
-    doors: float
-
-
-def bend_losses(points: np.ndarray, model: str = "fresnel", c: float = 343.0) -> np.ndarray:
-    """Amplitude factor (9,) per band of the bends of a polyline (k, 2): at every interior point, the Fresnel number
-    of its detour over the line between its neighbours, 10 log10(1 + 20 N) dB, at most 25 dB a bend."""
-    out = np.ones(len(BANDS))
-    if model == "none" or len(points) < 3:
-        return out
-    loss = np.zeros(len(BANDS))
-    for k in range(1, len(points) - 1):
-        p, q, r = points[k - 1], points[k], points[k + 1]
-        delta = np.hypot(*(q - p)) + np.hypot(*(r - q)) - np.hypot(*(r - p))
-        loss += np.minimum(10 * np.log10(1 + 20 * 2 * max(delta, 0.0) * BANDS / c), MAX_BEND_LOSS_DB)
-    return 10 ** (-loss / 20)
 
 
 def _segments_cross(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -446,22 +432,19 @@ class PathGraph:
             out &= self.node_ok
         return out
 
-    def path(self, s, lis, vis_s=None, vis_l=None, model: str = "fresnel") -> PathResult | None:
-        """The shortest open path between 2-D points s and lis (None when there is none), with its losses."""
-        s, lis = np.asarray(s[:2], float), np.asarray(lis[:2], float)
+    def path(self, s, lis, model: str = "fresnel") -> PathResult | None:
+        """The path the renderer takes from 2-D point s to 2-D point lis (the same kernel): None when they see each
+        other on the slice or no open path joins them."""
         if len(self.nodes) == 0:
             return None
-        vis_s = self.visible(s) if vis_s is None else vis_s
-        vis_l = self.visible(lis) if vis_l is None else vis_l
-        chain = np.empty(64, np.int64)
-        m, length = shortest_path(s, lis, vis_s, vis_l, self.nodes, self.dist, self.pred, chain)
-        if m == 0:
-            return None
-        pts = np.vstack([s, self.nodes[chain[:m]], lis])
-        doors = 1.0
-        for p, q in zip(pts[:-1], pts[1:]):
-            doors *= _door_factor(p[0], p[1], q[0], q[1], self.door_segments, self.aperture)
-        return PathResult(pts, float(length), bend_losses(pts, model) * np.sqrt(doors), doors)
+        pos = np.array([[s[0], s[1], 0.0]])
+        on, length = np.zeros(1, bool), np.zeros(1)
+        last, first, amp = np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, len(BANDS)))
+        trace_paths(np.zeros(1, np.int64), pos, np.array([lis[0], lis[1], 0.0]), self.visible(s)[None],
+                    self.visible(lis), self.blocked, self.origin, self.cell, self.nodes, self.dist, self.pred,
+                    self.leaves, self.door_segments, self.aperture, BANDS, 343.0, model != "none", on, length, last,
+                    first, amp)
+        return PathResult(float(length[0]), last[0], first[0], amp[0]) if on[0] else None
 
 
 _CACHE: OrderedDict = OrderedDict()
