@@ -210,7 +210,7 @@ def test_long_run_no_memory_growth_no_denormals(reverb):
     assert after - before < 200_000, after - before
     assert np.all(y == 0) or np.min(np.abs(y[y != 0])) >= 1e-30
     st = r._state[0]
-    state = (st["fdn"].buf, st["fdn"].zi) if reverb == "fdn" else (st["conv"].fdl, st["conv"].prev_in)
+    state = (st["fdn"].buf, st["fdn"].zi) if reverb == "fdn" else (st["conv"].fdl, st["conv"]._frame)
     for arr in state:
         tiny = np.finfo(arr.real.dtype).tiny
         nz = np.abs(arr[arr != 0])

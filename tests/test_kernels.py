@@ -96,7 +96,7 @@ def test_fdn_process_is_a_householder_network():
     x = RNG.normal(size=B)
     buf, z = np.zeros((N, size)), np.zeros(N)
     out = np.empty((2, B))
-    pos = K.fdn_process(x, out, buf.copy(), 0, delays, b0, p, z.copy(), cl, cr, 0.7)
+    pos = K.fdn_process(x, out, buf.copy(), 0, delays, b0, p, z.copy(), cl, cr, 0.7, np.empty(N))
     # twin: explicit matrix form, A = I - 2/N 1 1^T
     A = np.eye(N) - 2.0 / N
     rbuf, rz, ref = np.zeros((N, size)), np.zeros(N), np.zeros((2, B))
@@ -202,13 +202,14 @@ def test_image_taps_and_encode_taps():
     lis = np.array([3.0, 2.5, 1.6])
     R = np.eye(3)
     amp = RNG.uniform(0.3, 0.9, Kn)
-    occ = np.array([1.0, 0.5, 1.0])
+    occ = np.ones((3, 9))
+    occ[1, 4:7] = [0.4, 0.5, 0.6]  # the images scale by the mid-band mean
     delay, gain, Y = np.empty((3, Kn)), np.empty((3, Kn)), np.empty((3, Kn, 9))
     K.image_taps(src, lo, hi, q, m, amp, lis, R, 0, 1.0, 500.0, 0.0, occ, 0.001, 343.0, delay, gain, Y)
     L = hi - lo
     img = (1 - 2 * q[None]) * (src[:2, None] - lo) + 2 * m[None] * L + lo - lis  # (2, K, 3)
     d = np.linalg.norm(img, axis=-1)
-    g = _distance_twin(d, 0, 1.0, 500.0, 0.0) * amp[None] * occ[:2, None]
+    g = _distance_twin(d, 0, 1.0, 500.0, 0.0) * amp[None] * occ[:2, 4:7].mean(1)[:, None]
     np.testing.assert_allclose(gain[:2], np.where(g >= 1e-4, g, 0), rtol=1e-12)
     np.testing.assert_allclose(delay[:2], d / 343.0 + 0.001, rtol=1e-12)
     u = img / d[..., None]
@@ -227,7 +228,7 @@ def test_image_taps_and_encode_taps():
     Y_new = Y * 0.95
     ramp = ((np.arange(B) + 1) / B).astype(np.float32)
     amb = np.empty((9, B), np.float32)
-    K.encode_taps(ring, 100, delay, d_new, FS, gain, g_new, Y, Y_new, ramp, amb)
+    K.encode_taps(ring, 100, delay, d_new, FS, gain, g_new, Y, Y_new, ramp, amb, np.empty(B, np.float32))
     t = np.arange(B)
     r = (t + 1) / B
     ref = np.zeros((9, B))
@@ -252,7 +253,8 @@ def test_barycentric_matches_an_exhaustive_search():
     d = RNG.normal(size=(300, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     grid, step = h._grid()
-    idx, w = K.barycentric(d, grid, step, h._inv, h._tri)
+    idx, w = np.empty((len(d), 3), np.int64), np.empty((len(d), 3))
+    K.barycentric(d, grid, step, h._inv, h._tri, idx, w)
     # twin: the triangle whose smallest barycentric weight is largest, over all triangles
     wa = np.einsum("tij,mj->mti", h._inv, d)
     best = np.argmax(wa.min(2), axis=1)
@@ -285,4 +287,129 @@ def test_every_kernel_has_a_twin():
     here = open(__file__).read() + open(__file__.replace("test_kernels.py", "test_engine.py")).read()
     missing = sorted(n for n in kernels if f"K.{n}(" not in here and f"import {n}" not in here)
     assert not missing, missing
-    assert inspect.getsource(K).count("@njit") == len(kernels) + 1  # + the private _tap (inside gather's twin)
+    assert inspect.getsource(K).count("@njit") == len(kernels) + 2  # + the private _tap (inside gather's twin), _image
+
+
+def test_no_kernel_makes_an_array():
+    """The kernels run per block: none may allocate (the audio callback allocates no array memory; numba's own
+    allocations are counted in tests/test_poison.py). A source scan of every compiled function's body."""
+    import inspect
+
+    from sonicverse_core.acoustics import paths
+
+    made = ("np.empty(", "np.zeros(", "np.ones(", "np.full(", "np.array(", ".copy()", "np.concatenate(", "np.stack(")
+    per_block = [f for f in vars(K).values() if hasattr(f, "py_func")] + [paths.combine_paths, paths._unit]
+    bad = [(f.__name__, m) for f in per_block for m in made if m in inspect.getsource(f.py_func).split('"""')[-1]]
+    assert not bad, bad
+
+
+def test_nearest_direction():
+    dirs = RNG.normal(size=(40, 3))
+    meas = RNG.normal(size=(25, 3))
+    meas /= np.linalg.norm(meas, axis=1, keepdims=True)
+    idx, w = np.empty((40, 3), np.int64), np.empty((40, 3))
+    K.nearest_direction(dirs, meas, idx, w)
+    ref = np.argmax(dirs @ meas.T, axis=1)
+    assert np.all(idx == ref[:, None]) and np.all(w == [1.0, 0.0, 0.0])
+
+
+def test_onset_delays_and_pan_spectra():
+    n = 5
+    w = RNG.dirichlet(np.ones(3), n)
+    idx = RNG.integers(0, 10, (n, 3))
+    onsets = RNG.uniform(0, 1e-3, (10, 2))
+    d0, spread, mean = RNG.uniform(0, 0.05, n), RNG.uniform(0, 1, n), onsets.mean(0)
+    out = np.empty((n, 2))
+    K.onset_delays(w, idx, onsets, d0, spread, mean, out)
+    o = np.einsum("mk,mke->me", w, onsets[idx])
+    np.testing.assert_allclose(out, d0[:, None] + o + (mean[None] - o) * spread[:, None], rtol=1e-12)
+    dirs = RNG.normal(size=(n, 3))
+    curve = RNG.uniform(0, 1, (n, 7)).astype(np.float32)
+    spec = np.empty((n, 2, 7), np.complex64)
+    for mono in (False, True):
+        K.pan_spectra(dirs, curve, mono, spec)
+        y = dirs[:, 1] / np.linalg.norm(dirs, axis=1)
+        pan = np.full((n, 2), np.sqrt(0.5)) if mono else np.stack([np.sqrt(0.5 * (1 + y)), np.sqrt(0.5 * (1 - y))], 1)
+        np.testing.assert_allclose(spec, pan[:, :, None] * curve[:, None, :], rtol=1e-6)
+
+
+def test_block_glue_kernels():
+    """The small kernels that replace NumPy expressions in the renderer's block (each against that expression)."""
+    n = 6
+    occ, target = RNG.uniform(0, 1, (n, 9)), RNG.uniform(0, 1, (n, 9))
+    fresh, mute = np.array([1, 0, 0, 1, 0, 0], bool), np.array([0, 0, 1, 1, 0, 0], bool)
+    ref = occ + 0.25 * (target - occ)
+    ref[fresh] = target[fresh]
+    ref[mute] = 0.0
+    K.smooth_toward(occ, target, 0.75, fresh, mute)
+    np.testing.assert_allclose(occ, ref, rtol=1e-12)
+
+    h = RNG.normal(size=(4, 32))
+    ref = h.copy()
+    ref[:, :-8] = ref[:, 8:]
+    K.shift_left(h, 8)
+    np.testing.assert_array_equal(h, ref)
+
+    B, N = 8, 32
+    both = RNG.normal(size=(2, 2, N)).astype(np.float32)
+    ramp = ((np.arange(B) + 1) / B).astype(np.float32)
+    for xf in (True, False):
+        out = np.ones((2, B))
+        K.crossfade_into(both, ramp, 0.5, xf, out)
+        y0, y1 = both[0, :, -B:], both[1, :, -B:]
+        np.testing.assert_allclose(out, 1 + 0.5 * ((y0 + (y1 - y0) * ramp) if xf else y1), rtol=1e-6)
+    out = np.ones((2, B))
+    K.add_tail(both[0], 2.0, out)
+    np.testing.assert_allclose(out, 1 + 2.0 * both[0, :, -B:], rtol=1e-6)
+    out = np.zeros((2, B))
+    K.mix_ramped(both[0], 0.2, 0.6, 1.0, 0.5, 0.1, out)
+    r = (np.arange(B) + 1) / B
+    np.testing.assert_allclose(out, 0.1 * both[0, :, -B:] * (0.2 + 0.4 * r) * (1.0 - 0.5 * r), rtol=1e-6)
+
+    assert K.all_finite(np.ones((2, 3))) and not K.all_finite(np.array([[1.0, np.nan]]))
+    assert not K.all_finite(np.array([np.inf], np.float32))
+
+    R = np.empty((3, 3))
+    K.head_rotation(30.0, 10.0, R)
+    c, s_, cp, sp = np.cos(np.radians(30)), np.sin(np.radians(30)), np.cos(np.radians(10)), np.sin(np.radians(10))
+    np.testing.assert_allclose(R, np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @
+                               np.array([[c, s_, 0], [-s_, c, 0], [0, 0, 1.0]]), atol=1e-12)
+
+    a, b = RNG.uniform(0, 1, (n, 3)), RNG.uniform(0, 1, (n, 3))
+    b[1] = a[1] + 0.01
+    b[2, 0] = np.nan
+    mask = np.empty(n, bool)
+    cnt = K.rows_moved(a, b, 0.05, mask)
+    np.testing.assert_array_equal(mask, ~(np.max(np.abs(a - b), axis=1) <= 0.05))
+    assert cnt == mask.sum()
+    assert K.farther(a[0], b[0], 0.0) == bool(np.any(a[0] != b[0])) and not K.farther(a[1], b[1], 0.05)
+    assert K.farther(a[2], b[2], 10.0)  # NaN counts as moved
+    x = RNG.uniform(0, 1, 50)
+    assert K.count_over(x, 0.3) == np.count_nonzero(x > 0.3)
+
+    room = np.array([-1, 0, 2, 1, 0])
+    group, use = np.empty(5, np.int64), np.empty(5, bool)
+    K.late_groups(room, 0, group, use)
+    np.testing.assert_array_equal(group, np.where((room >= 0) & (room != 0), room + 1, 0))
+    np.testing.assert_array_equal(use, room < 0)
+    send = np.array([0.0, 0.1, 0.2, 0.0, 0.3])
+    assert K.groups_sending(group, send, np.zeros(4, bool)) == len(np.unique(group[send > 0]))
+
+    xs, prev = np.zeros((3, 8), np.float32), np.zeros((3, 8), np.float32)
+    xs[0, 3], prev[2, 0] = 1.0, 0.5
+    live = np.empty(3, bool)
+    assert K.live_rows(xs, prev, live) == 2
+    np.testing.assert_array_equal(live, np.any(xs != 0, 1) | np.any(prev != 0, 1))
+    X = (RNG.normal(size=(3, 5)) + 1j * RNG.normal(size=(3, 5))).astype(np.complex64)
+    curves = RNG.uniform(0, 1, (3, 5)).astype(np.float32)
+    row = np.empty(5, np.complex64)
+    for shaped in (True, False):
+        K.fdl_fill(X, curves, live, shaped, row)
+        np.testing.assert_allclose(row, ((X * curves) if shaped else X)[live].sum(0), rtol=1e-5)
+
+    pend, ring_row = RNG.normal(size=16).astype(np.float32), np.empty(16, np.float32)
+    K.scale_into(pend, 0.3, ring_row)
+    np.testing.assert_allclose(ring_row, pend * np.float32(0.3), rtol=1e-6)
+    s0, t1, cur = RNG.normal(size=7), RNG.normal(size=7), np.empty(7)
+    K.lerp(s0, t1, 0.3, cur)
+    np.testing.assert_allclose(cur, s0 + (t1 - s0) * 0.3, rtol=1e-12)

@@ -4,9 +4,9 @@ The callback (:meth:`AudioCore.callback`) does, per block: copy the microphone i
 frame through the sequence lock and advance the interpolated poses; move the listeners, the sources, the mouth
 (the microphone's source) and the doors; render one block; write the user's block to the output and every
 listener's block to its ring; record its own duration. Its state (rings, pose and output buffers, the renderer's
-per-source and per-listener arrays) is allocated before the stream starts; the renderer's block still makes
-short-lived NumPy temporaries (FFT outputs, per-band curves), about the same few hundred kB every block and freed
-within it: the callback's memory does not grow (tracemalloc, tests/test_poison.py). It is not allocation-free.
+per-source and per-listener arrays, FFT plans, the listeners' output blocks) is allocated before the stream starts;
+in steady state (nothing moved beyond the occlusion tolerance, no door moving) a callback allocates no array memory
+and numba none (tests/test_poison.py counts both).
 An exception is caught, counted and written to the error slot, and the block plays silence.
 """
 from __future__ import annotations
@@ -19,6 +19,7 @@ from app.audio_rt import config as C
 from app.audio_rt.config import AudioConfig, AudioScene
 from app.audio_rt.poses import PoseInterpolator, PoseLayout, mouth
 from app.audio_rt.shared import Layout, Ring, SeqLock
+from sonicverse_core.acoustics.kernels import all_finite, farther
 
 ERROR_BYTES = 1024
 
@@ -155,6 +156,7 @@ class AudioCore:
         self.mic_block = np.zeros(B, np.float32)
         self.zero_in = np.zeros((B, 1), np.float32)  # the "microphone" of an output-only stream
         self.out_block = np.zeros((2, B), np.float32)
+        self.outs = [np.zeros((2, B), np.float32) for _ in self.r.listeners]  # the renderer writes into these
         # loopback test signal: a 4096-sample white-noise burst every half second on the left channel
         self.test = None
         if cfg.test_signal:
@@ -192,16 +194,13 @@ class AudioCore:
             r._pos[:n] = v[L.SOURCES].reshape(n, 3)
             r._gain[:n] = v[L.GAINS]
         if self.mic is not None:
-            m, fwd = mouth(head)
-            r._pos[self.mic.index] = m
-            r._fwd[self.mic.index] = fwd
-            side = v[L.SIDETONE]
+            mouth(head, out=(r._pos[self.mic.index], r._fwd[self.mic.index]))
+            side = float(v[L.SIDETONE])
             if (side > 0) != (self.sidetone > 0) and self.user is not None:
                 r.set_heard(self.user, self.mic, side > 0)
             self.sidetone = side
         if self.doors:  # doors take the newest frame's state, not a ramp: one geometry rebuild per change
-            d = self.interp.target[L.DOORS]
-            if np.any(d != self.door_state):
+            if farther(self.interp.target[L.DOORS], self.door_state, 0.0):
                 self.door_change = True
 
     def _apply_doors(self) -> None:
@@ -221,7 +220,7 @@ class AudioCore:
         if self.mic is not None:
             self.mic.pending = mic_block
         self._apply_poses()
-        outs = self.r.render_block()
+        outs = self.r.render_block(self.outs)
         for k, o in enumerate(outs):
             self.sh.ears[1 + k].write(o)
         if self.door_change:
@@ -248,8 +247,8 @@ class AudioCore:
                 raise RuntimeError("injected fault (test hook)")
             if self.mic is not None:
                 mb = self.mic_block
-                np.multiply(indata[:, self.cfg.mic_channel], 1.0, out=mb)
-                if not np.isfinite(np.dot(mb, mb)):  # a NaN/inf sample (a broken driver): zeros, counted
+                mb[:] = indata[:, self.cfg.mic_channel]
+                if not all_finite(mb):  # a NaN/inf sample (a broken driver): zeros, counted
                     np.nan_to_num(mb, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
                     np.clip(mb, -1e6, 1e6, out=mb)
                     tele[C.MIC_NONFINITE] += 1
@@ -257,7 +256,7 @@ class AudioCore:
                 mic_written = True
                 self.mic.pending = self.mic_block
             self._apply_poses()
-            outs = self.r.render_block()
+            outs = self.r.render_block(self.outs)
             ob = self.out_block
             ob[:] = outs[0]
             if self.test is not None:
@@ -288,5 +287,5 @@ class AudioCore:
         tele[C.CALLBACKS] += 1
         t1 = time.perf_counter()
         sh.telef[C.LAST_CALLBACK] = t1
-        self._dur[0] = t1 - t0
+        self._dur[0, 0] = t1 - t0
         sh.durations.write(self._dur)

@@ -8,8 +8,11 @@ interpolated the short way round; an entity that moved more than ``teleport_m`` 
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from sonicverse_core.acoustics.kernels import lerp
 from sonicverse_core.errors import PoseError
 
 MOUTH_OFFSET = np.array([0.08, 0.0, -0.07])  # m in the head frame (x forward, z up): in front of and below the ears
@@ -95,27 +98,34 @@ class PoseInterpolator:
         self.last_t = v[0]
         self.start[:] = self.cur
         self.target[:] = v
-        a = self.L.angle_idx
-        self.target[a] = self.start[a] + wrap180(v[a] - self.start[a])
+        t, s0 = self.target, self.start
+        for a in self.L.angle_idx:  # element by element: the callback reads frames, and allocates nothing
+            t[a] = s0[a] + wrap180(v[a] - s0[a])
         for e in self.L.entities:
-            dx = self.target[e:e + 3] - self.start[e:e + 3]
-            if dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2] > self.teleport * self.teleport:
-                self.start[e:e + 3] = self.target[e:e + 3]
+            dx, dy, dz = t[e] - s0[e], t[e + 1] - s0[e + 1], t[e + 2] - s0[e + 2]
+            if dx * dx + dy * dy + dz * dz > self.teleport * self.teleport:
+                s0[e], s0[e + 1], s0[e + 2] = t[e], t[e + 1], t[e + 2]
         self.frac = 0.0
 
     def advance(self, block_s: float) -> np.ndarray:
         if self.frac < 1.0:
             self.frac = min(1.0, self.frac + block_s / max(self.interval, block_s))
-            np.subtract(self.target, self.start, out=self.cur)
-            self.cur *= self.frac
-            self.cur += self.start
+            lerp(self.start, self.target, self.frac, self.cur)
         return self.cur
 
 
-def mouth(head: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mouth position and facing direction for a head pose (x, y, z, yaw, pitch)."""
-    yaw, pitch = np.radians(head[3]), np.radians(head[4])
-    fwd = np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)])
-    left = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
-    up = np.cross(fwd, left)
-    return head[:3] + MOUTH_OFFSET[0] * fwd + MOUTH_OFFSET[1] * left + MOUTH_OFFSET[2] * up, fwd
+def mouth(head: np.ndarray, out: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Mouth position and facing direction for a head pose (x, y, z, yaw, pitch); written into ``out`` (two
+    (3,) arrays) when given."""
+    yaw, pitch = math.radians(head[3]), math.radians(head[4])
+    cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    fwd = (cy * cp, sy * cp, sp)
+    left = (-sy, cy, 0.0)
+    up = (fwd[1] * left[2] - fwd[2] * left[1], fwd[2] * left[0] - fwd[0] * left[2],
+          fwd[0] * left[1] - fwd[1] * left[0])
+    pos, f = out if out is not None else (np.empty(3), np.empty(3))
+    o0, o1, o2 = float(MOUTH_OFFSET[0]), float(MOUTH_OFFSET[1]), float(MOUTH_OFFSET[2])
+    for k in range(3):
+        pos[k] = head[k] + o0 * fwd[k] + o1 * left[k] + o2 * up[k]
+        f[k] = fwd[k]
+    return pos, f

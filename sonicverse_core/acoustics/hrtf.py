@@ -151,20 +151,23 @@ class HrtfInterpolator:
             self._grid_step = step
         return self._grid_tri, self._grid_step
 
-    def weights(self, directions: np.ndarray, method: str = "barycentric") -> tuple[np.ndarray, np.ndarray]:
+    def weights(self, directions: np.ndarray, method: str = "barycentric", out=None) -> tuple[np.ndarray, np.ndarray]:
         """For directions (m, 3): vertex indices (m, 3) and weights (m, 3) summing to 1. barycentric: the hull
         triangle the direction passes through, found through the grid table by a compiled loop (falling back to
-        the whole hull); nearest: the closest measured direction with weight 1."""
-        from sonicverse_core.acoustics.kernels import barycentric
+        the whole hull); nearest: the closest measured direction with weight 1. ``out``: (indices int64, weights
+        float64) arrays of shape (m, 3) to write into (the renderer's per-block call allocates nothing)."""
+        from sonicverse_core.acoustics.kernels import all_finite, barycentric, nearest_direction
 
         d = np.ascontiguousarray(np.atleast_2d(directions), dtype=np.float64)
-        if not np.all(np.isfinite(d)):
+        if not all_finite(d):
             raise ConfigError("HRTF directions must be finite")
+        idx, w = out if out is not None else (np.empty((len(d), 3), np.int64), np.empty((len(d), 3)))
         if method == "nearest":
-            i = np.argmax(d @ self.directions.T, axis=1)
-            return np.stack([i, i, i], 1), np.tile([1.0, 0.0, 0.0], (len(d), 1))
-        grid, step = self._grid()
-        return barycentric(d, grid, step, self._inv, self._tri)
+            nearest_direction(d, self.directions, idx, w)
+        else:
+            grid, step = self._grid()
+            barycentric(d, grid, step, self._inv, self._tri, idx, w)
+        return idx, w
 
     def spectra(self, nfft: int) -> np.ndarray:
         """Spectra of the aligned filters at FFT size ``nfft``: (n, 2, nfft // 2 + 1) complex64 (cached)."""

@@ -104,13 +104,13 @@ def _tap(row, base, d0, dd, g0, dg, out):
 
 
 @njit(**_fast)
-def encode_taps(ring, base, d_old, d_new, fs, g_old, g_new, Y_old, Y_new, ramp, amb):
+def encode_taps(ring, base, d_old, d_new, fs, g_old, g_new, Y_old, Y_new, ramp, amb, tmp):
     """Image-source taps encoded into ambisonics: amb[c, t] += tap_ik(t) (Y_old[i, k, c] + (Y_new - Y_old) ramp[t])
-    for source i and image k; taps whose gain stays 0 are skipped. amb (C, B) is overwritten."""
+    for source i and image k; taps whose gain stays 0 are skipped. amb (C, B) is overwritten; tmp (B,) float32
+    scratch."""
     n, K = d_new.shape
     C, B = amb.shape
     amb[:] = 0.0
-    tmp = np.empty(B, np.float32)
     for i in range(n):
         for k in range(K):
             g0 = g_old[i, k]
@@ -127,12 +127,11 @@ def encode_taps(ring, base, d_old, d_new, fs, g_old, g_new, Y_old, Y_new, ramp, 
 
 
 @njit(**_opts)
-def barycentric(dirs, grid, step, inv, tris):
+def barycentric(dirs, grid, step, inv, tris, idx, w):
     """HRTF triangle and barycentric weights of unit vectors (m, 3): the grid cell's triangle first, then the
-    whole hull (the triangle whose smallest weight is largest). Returns vertex indices (m, 3), weights (m, 3)."""
+    whole hull (the triangle whose smallest weight is largest). Writes vertex indices idx (m, 3) int64 and weights
+    w (m, 3)."""
     m = dirs.shape[0]
-    idx = np.empty((m, 3), np.int64)
-    w = np.empty((m, 3))
     na, ne = grid.shape[0], grid.shape[1]
     for i in range(m):
         x, y, z = dirs[i, 0], dirs[i, 1], dirs[i, 2]
@@ -163,7 +162,20 @@ def barycentric(dirs, grid, step, inv, tris):
         s = max(w0 + w1 + w2, 1e-12)
         idx[i, 0], idx[i, 1], idx[i, 2] = tris[tt, 0], tris[tt, 1], tris[tt, 2]
         w[i, 0], w[i, 1], w[i, 2] = w0 / s, w1 / s, w2 / s
-    return idx, w
+
+
+@njit(**_opts)
+def nearest_direction(dirs, measured, idx, w):
+    """The measured direction (rows of measured (n, 3), unit) nearest each of dirs (m, 3): the largest dot
+    product; idx[i] = (j, j, j), w[i] = (1, 0, 0)."""
+    for i in range(dirs.shape[0]):
+        best, bj = -np.inf, 0
+        for j in range(measured.shape[0]):
+            v = dirs[i, 0] * measured[j, 0] + dirs[i, 1] * measured[j, 1] + dirs[i, 2] * measured[j, 2]
+            if v > best:
+                best, bj = v, j
+        idx[i, 0], idx[i, 1], idx[i, 2] = bj, bj, bj
+        w[i, 0], w[i, 1], w[i, 2] = 1.0, 0.0, 0.0
 
 
 @njit(**_fast)
@@ -204,13 +216,12 @@ def accumulate(X, spec, p_spec, acc_new, acc_old):
 
 
 @njit(**_opts)
-def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm):
+def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm, y):
     """One block of an N-line FDN with a Householder feedback matrix and one-pole damping per line.
-    buf (N, size) ring; pos: write index; z (N,) filter states. Returns the new write index."""
+    buf (N, size) ring; pos: write index; z (N,) filter states; y (N,) scratch. Returns the new write index."""
     N, size = buf.shape
     B = len(x)
     h = 2.0 / N
-    y = np.empty(N)
     inj = 1.0 / np.sqrt(N)
     for t in range(B):
         s = 0.0
@@ -253,11 +264,21 @@ def distance_gain_1(d, mode, d0, D, near_k):
 
 
 @njit(**_opts)
+def _image(s, lo, hi, q, m, lis):
+    """One coordinate of an image source (relative to the listener): the source clamped into [lo, hi], mirrored
+    q times (0/1) and shifted by m box lengths."""
+    L = hi - lo
+    x = min(max(s - lo, 0.0), L)
+    return (1 - 2 * q) * x + 2 * m * L + lo - lis
+
+
+@njit(**_opts)
 def image_taps(src, lo, hi, q, m, amp, lis, R, mode, d0, D, near_k, occ, bulk, c_sound, delay, gain, Y):
     """Image sources of the box [lo, hi] for sources src (n, 3) as heard at lis: delay
     (n, K) s, gain (n, K) (distance law x wall reflections x occ (n,)), and 2nd-order N3D SH (n, K, 9) of the
-    direction in the head frame (R: world -> head rotation). Sources more than 0.5 m outside the box get no
-    images (gain 0); those within that margin are clamped into it."""
+    direction in the head frame (R: world -> head rotation); occ (n, 9): the per-band transmission, whose mid-band
+    (500 Hz - 2 kHz) mean scales the images. Sources more than 0.5 m outside the box get no images (gain 0); those
+    within that margin are clamped into it."""
     n, K = delay.shape
     s3, s15, s5h = np.sqrt(3.0), np.sqrt(15.0), np.sqrt(5.0) / 2
     for i in range(n):
@@ -272,19 +293,17 @@ def image_taps(src, lo, hi, q, m, amp, lis, R, mode, d0, D, near_k, occ, bulk, c
                 for c in range(9):
                     Y[i, k, c] = 0.0
                 continue
-            v = np.empty(3)
-            for a in range(3):
-                L = hi[a] - lo[a]
-                x = min(max(src[i, a] - lo[a], 0.0), L)
-                v[a] = (1 - 2 * q[k, a]) * x + 2 * m[k, a] * L + lo[a] - lis[a]
-            d = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-            g = distance_gain_1(d, mode, d0, D, near_k) * amp[k] * occ[i]
+            v0, v1, v2 = _image(src[i, 0], lo[0], hi[0], q[k, 0], m[k, 0], lis[0]), \
+                _image(src[i, 1], lo[1], hi[1], q[k, 1], m[k, 1], lis[1]), \
+                _image(src[i, 2], lo[2], hi[2], q[k, 2], m[k, 2], lis[2])
+            d = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            g = distance_gain_1(d, mode, d0, D, near_k) * amp[k] * (occ[i, 4] + occ[i, 5] + occ[i, 6]) / 3.0
             gain[i, k] = g if g >= 1e-4 else 0.0  # below -80 dB: left out
             delay[i, k] = min(d, D) / c_sound + bulk
             inv = 1.0 / max(d, 1e-9)
-            x = (R[0, 0] * v[0] + R[0, 1] * v[1] + R[0, 2] * v[2]) * inv
-            y = (R[1, 0] * v[0] + R[1, 1] * v[1] + R[1, 2] * v[2]) * inv
-            z = (R[2, 0] * v[0] + R[2, 1] * v[1] + R[2, 2] * v[2]) * inv
+            x = (R[0, 0] * v0 + R[0, 1] * v1 + R[0, 2] * v2) * inv
+            y = (R[1, 0] * v0 + R[1, 1] * v1 + R[1, 2] * v2) * inv
+            z = (R[2, 0] * v0 + R[2, 1] * v1 + R[2, 2] * v2) * inv
             Y[i, k, 0] = 1.0
             Y[i, k, 1] = s3 * y
             Y[i, k, 2] = s3 * z
@@ -444,3 +463,212 @@ def fdl_mac(fdl, H, off, out):
         for e in range(E):
             for f in range(F):
                 out[e, f] += fdl[p, f] * H[off + p, e, f]
+
+
+# --- the per-block glue of the renderer: each replaces a NumPy expression that made temporaries ----------------------
+@njit(**_opts)
+def onset_delays(w, idx, onsets, delay0, spread, mean_onset, out):
+    """out[i, e] = delay0[i] + o, o = sum_k w[i, k] onsets[idx[i, k], e] blended towards mean_onset[e] by spread[i]
+    (the fully spread source's onset is the set's mean)."""
+    for i in range(out.shape[0]):
+        for e in range(out.shape[1]):
+            o = w[i, 0] * onsets[idx[i, 0], e] + w[i, 1] * onsets[idx[i, 1], e] + w[i, 2] * onsets[idx[i, 2], e]
+            out[i, e] = delay0[i] + o + (mean_onset[e] - o) * spread[i]
+
+
+@njit(**_opts)
+def smooth_toward(occ, target, k, fresh, mute):
+    """occ += (1 - k) (target - occ), except occ = target where fresh and 0 where mute (rows: sources)."""
+    for i in range(occ.shape[0]):
+        for b in range(occ.shape[1]):
+            if mute[i]:
+                occ[i, b] = 0.0
+            elif fresh[i]:
+                occ[i, b] = target[i, b]
+            else:
+                occ[i, b] += (1.0 - k) * (target[i, b] - occ[i, b])
+
+
+@njit(**_opts)
+def shift_left(h, B):
+    """h[:, :-B] = h[:, B:] (rows of an overlap-save history; h (m, N))."""
+    m, N = h.shape
+    for i in range(m):
+        for t in range(N - B):
+            h[i, t] = h[i, t + B]
+
+
+@njit(**_opts)
+def crossfade_into(both, ramp, scale, xfade, out):
+    """out[e, t] += scale (y0 + (y1 - y0) ramp[t]) with y_j = both[j, e, N - B + t] (the last B samples of the old
+    (j = 0) and new (j = 1) filters' outputs); without xfade out += scale y1."""
+    E, B = out.shape
+    off = both.shape[2] - B
+    for e in range(E):
+        for t in range(B):
+            y1 = both[1, e, off + t]
+            if xfade:
+                y0 = both[0, e, off + t]
+                out[e, t] += scale * (y0 + (y1 - y0) * ramp[t])
+            else:
+                out[e, t] += scale * y1
+
+
+@njit(**_opts)
+def add_tail(y, scale, out):
+    """out[e, t] += scale y[e, N - B + t]: the last B samples of y (E, N)."""
+    E, B = out.shape
+    off = y.shape[1] - B
+    for e in range(E):
+        for t in range(B):
+            out[e, t] += scale * y[e, off + t]
+
+
+@njit(**_opts)
+def mix_ramped(y, w0, w1, lv0, lv1, scale, out):
+    """out[e, t] += scale y[e, N - B + t] (w0 + (w1 - w0) r) (lv0 + (lv1 - lv0) r), r = (t + 1) / B: a probe's tail
+    with its ramped mixing weight and the ramped late level."""
+    E, B = out.shape
+    off = y.shape[1] - B
+    for t in range(B):
+        r = (t + 1) / B
+        g = scale * (w0 + (w1 - w0) * r) * (lv0 + (lv1 - lv0) * r)
+        for e in range(E):
+            out[e, t] += g * y[e, off + t]
+
+
+@njit(**_opts)
+def pan_spectra(dirs, curve, mono, spec):
+    """Without HRTFs: spec[i, 0] = sqrt((1 + y_i) / 2) curve[i], spec[i, 1] = sqrt((1 - y_i) / 2) curve[i] (y: the
+    unit direction's lateral component, +y left), or sqrt(1/2) curve[i] in both channels when mono."""
+    for i in range(dirs.shape[0]):
+        if mono:
+            gl = gr = np.sqrt(0.5)
+        else:
+            r = np.sqrt(dirs[i, 0] ** 2 + dirs[i, 1] ** 2 + dirs[i, 2] ** 2)
+            y = dirs[i, 1] / r if r > 0 else 0.0
+            gl, gr = np.sqrt(0.5 * (1 + y)), np.sqrt(0.5 * (1 - y))
+        for f in range(curve.shape[1]):
+            spec[i, 0, f] = np.float32(gl) * curve[i, f]
+            spec[i, 1, f] = np.float32(gr) * curve[i, f]
+
+
+@njit(**_opts)
+def all_finite(x):
+    """True when every element of x (any shape) is finite."""
+    for v in x.flat:
+        if not np.isfinite(v):
+            return False
+    return True
+
+
+@njit(**_opts)
+def head_rotation(yaw, pitch, R):
+    """World -> head frame rotation (x forward, y left, z up): yaw about z, then pitch (degrees), into R (3, 3)."""
+    c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+    cp, sp = np.cos(np.radians(pitch)), np.sin(np.radians(pitch))
+    R[0, 0], R[0, 1], R[0, 2] = cp * c, cp * s, sp
+    R[1, 0], R[1, 1], R[1, 2] = -s, c, 0.0
+    R[2, 0], R[2, 1], R[2, 2] = -sp * c, -sp * s, cp
+
+
+@njit(**_opts)
+def rows_moved(a, b, tol, mask):
+    """mask[i] = max_j |a[i, j] - b[i, j]| > tol (NaN counts as moved); returns how many rows moved."""
+    count = 0
+    for i in range(a.shape[0]):
+        moved = False
+        for j in range(a.shape[1]):
+            d = abs(a[i, j] - b[i, j])
+            if not (d <= tol):
+                moved = True
+                break
+        mask[i] = moved
+        count += moved
+    return count
+
+
+@njit(**_opts)
+def scale_into(x, g, out):
+    """out[t] = x[t] g (a live source's pushed block into its ring row)."""
+    for t in range(len(out)):
+        out[t] = x[t] * g
+
+
+@njit(**_opts)
+def lerp(a, b, r, out):
+    """out = a + (b - a) r (the pose interpolator's step)."""
+    for j in range(len(out)):
+        out[j] = a[j] + (b[j] - a[j]) * r
+
+
+@njit(**_opts)
+def farther(a, b, tol):
+    """max_j |a[j] - b[j]| > tol, or a NaN (1-D vectors: has a point moved?)."""
+    for j in range(len(a)):
+        if not (abs(a[j] - b[j]) <= tol):
+            return True
+    return False
+
+
+@njit(**_opts)
+def count_over(x, tol):
+    """How many elements of x (1-D) exceed tol."""
+    c = 0
+    for i in range(len(x)):
+        if x[i] > tol:
+            c += 1
+    return c
+
+
+@njit(**_opts)
+def late_groups(room, lis_room, group, use_occ):
+    """Per source: the late send it joins (0: the listener's room, or the room is unknown; 1 + r: room r) and
+    whether its send falls with the direct path's transmission (its room is unknown)."""
+    for i in range(len(room)):
+        r = room[i]
+        group[i] = r + 1 if (r >= 0 and r != lis_room) else 0
+        use_occ[i] = r < 0
+
+
+@njit(**_opts)
+def groups_sending(group, send, seen):
+    """How many distinct groups have a source with a non-zero send (seen (G,) bool scratch)."""
+    seen[:] = False
+    c = 0
+    for i in range(len(group)):
+        if send[i] > 0 and not seen[group[i]]:
+            seen[group[i]] = True
+            c += 1
+    return c
+
+
+@njit(**_opts)
+def live_rows(x, prev, live):
+    """live[g] = row g of x or of prev (the previous block) has a non-zero sample; returns how many are live."""
+    c = 0
+    for g in range(x.shape[0]):
+        on = False
+        for t in range(x.shape[1]):
+            if x[g, t] != 0.0 or prev[g, t] != 0.0:
+                on = True
+                break
+        live[g] = on
+        c += on
+    return c
+
+
+@njit(**_fast)
+def fdl_fill(X, curves, live, shaped, out):
+    """One frequency-domain delay-line row: out[f] = sum over live groups g of X[g, f] (times curves[g, f] when
+    shaped: the group's per-band coupling over the FFT bins)."""
+    out[:] = 0
+    for g in range(X.shape[0]):
+        if not live[g]:
+            continue
+        if shaped:
+            for f in range(X.shape[1]):
+                out[f] += X[g, f] * curves[g, f]
+        else:
+            for f in range(X.shape[1]):
+                out[f] += X[g, f]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sonicverse_core.acoustics.kernels import segment_motion
+from sonicverse_core.acoustics.kernels import count_over, segment_motion
 from sonicverse_core.scene.materials import BANDS, material_arrays
 
 
@@ -55,7 +55,7 @@ def _part_bounds(mesh) -> tuple[np.ndarray, np.ndarray]:
 
 class Occlusion:
     """Occlusion state shared by a renderer's listeners; per-listener arrays live in the listener's state dict
-    (``occ_target`` (n, 9), ``occ_seg`` (n, 6), ``scene_version``)."""
+    (``occ_target`` (n, 9), ``occ_seg`` (n, 6), ``occ_moved`` (n,), ``scene_version``)."""
 
     def __init__(self, scene, tolerance: float, rays_per_block: int):
         from sonicverse_core.geometry.raycast import SceneRayCaster
@@ -115,8 +115,10 @@ class Occlusion:
         n = len(pos)
         version = self.scene.dynamic_version
         # never-cast segments have NaN ends: infinitely moved, they go first
-        moved = np.empty(n)
+        moved = st["occ_moved"][:n]
         segment_motion(pos, lis, st["occ_seg"][:n], moved)
+        if version == st["scene_version"] and not count_over(moved, self.tolerance):
+            return  # the steady state: nothing moved, nothing cast, nothing allocated
         todo = moved > self.tolerance
         if np.count_nonzero(todo) > self.budget:
             todo = np.zeros(n, bool)

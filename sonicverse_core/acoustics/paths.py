@@ -502,14 +502,17 @@ class PathState:
                                         ("path_first", (cap, 2), np.float64, 0.0),
                                         ("path_amp", (cap, len(BANDS)), np.float64, 0.0),
                                         ("path_seg", (cap, 6), np.float64, np.nan),
-                                        ("path_rel", (cap, 3), np.float64, 0.0)):
+                                        ("path_rel", (cap, 3), np.float64, 0.0),
+                                        ("path_target", (cap, len(BANDS)), np.float64, 1.0),
+                                        ("path_eff", (cap, 3), np.float64, 0.0), ("path_fwd", (cap, 3), np.float64, 0.0),
+                                        ("path_moved", (cap,), np.float64, 0.0)):
             st[key] = _grown(st.get(key), shape, dtype, fill)
         st.setdefault("vis_l", np.zeros(len(self.graph.nodes), bool))
         st.setdefault("vis_l_at", np.full(3, np.nan))
         st.setdefault("path_version", None)
 
     def update(self, st: dict, pos: np.ndarray, lis: np.ndarray) -> None:
-        from sonicverse_core.acoustics.kernels import segment_motion
+        from sonicverse_core.acoustics.kernels import count_over, farther, segment_motion
 
         g, n = self.graph, len(pos)
         version = g.scene.dynamic_version
@@ -521,15 +524,17 @@ class PathState:
             st["path_version"] = version
             st["path_seg"][:] = np.nan
             st["vis_l_at"][:] = np.nan
-        if not (np.max(np.abs(st["vis_l_at"] - lis)) <= self.tolerance):  # NaN: never computed
+        if farther(st["vis_l_at"], lis, self.tolerance):  # NaN: never computed
             g_vis = st["vis_l"]
             if len(g.nodes):
                 visible_nodes(g.blocked, g.origin, g.cell, lis[:2].astype(np.float64), g.nodes, g.leaves,
                               g.blocking, g_vis)
                 g_vis &= g.node_ok
             st["vis_l_at"][:] = lis
-        moved = np.empty(n)
+        moved = st["path_moved"][:n]
         segment_motion(pos, lis, st["path_seg"][:n], moved)
+        if not count_over(moved, self.tolerance):  # the steady state: nothing to trace, nothing allocated
+            return
         todo = np.flatnonzero(moved > self.tolerance)
         if len(todo) > self.budget:
             todo = todo[np.argsort(-moved[todo], kind="stable")[: self.budget]]
@@ -550,11 +555,15 @@ class PathState:
 
     def apply(self, st: dict, pos: np.ndarray, fwd: np.ndarray, lis: np.ndarray, transmission: np.ndarray,
               rolloff: tuple, smoothing: float, fresh: np.ndarray):
-        """(per-band target (n, 9), emitter positions (n, 3), forwards (n, 3)) for this block; ``rolloff``: the
-        renderer's distance-law parameters (mode, d0, max distance, near-field factor)."""
+        """(per-band target (n, 9), emitter positions (n, 3), forwards (n, 3)) for this block, in the listener's
+        buffers (valid until its next block); ``rolloff``: the renderer's distance-law parameters (mode, d0, max
+        distance, near-field factor)."""
         n = len(pos)
-        target, eff, f = transmission.copy(), pos.copy(), fwd.copy()
-        self.stats["paths"] = combine_paths(st["path_on"][:n], pos, fwd, np.asarray(lis, np.float64), transmission,
+        target, eff, f = st["path_target"][:n], st["path_eff"][:n], st["path_fwd"][:n]
+        np.copyto(target, transmission)
+        np.copyto(eff, pos)
+        np.copyto(f, fwd)
+        self.stats["paths"] = combine_paths(st["path_on"][:n], pos, fwd, lis, transmission,
                                             st["path_len"][:n], st["path_last"][:n], st["path_first"][:n],
                                             st["path_amp"][:n], st["path_rel"][:n], fresh, float(smoothing or 0.0),
                                             *rolloff, target, eff, f)
@@ -562,11 +571,12 @@ class PathState:
 
 
 @njit(**_opts)
-def _unit(v):
-    n = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+def _unit(x, y, z):
+    """(x, y, z) / |(x, y, z)|, or zeros for a null vector (scalars: no array per call)."""
+    n = np.sqrt(x * x + y * y + z * z)
     if n < 1e-9:
-        return v * 0.0
-    return v / n
+        return 0.0, 0.0, 0.0
+    return x / n, y / n, z / n
 
 
 @njit(**_opts)
@@ -576,24 +586,24 @@ def combine_paths(on, pos, fwd, lis, trans, plen, last, first, pamp, rel, fresh,
     straight-line transmission added in energy per band, heard from a virtual source at the energy-weighted blend
     of their directions and lengths (smoothed towards it by k per block unless fresh); the forward turned by the
     rotation taking the blended emission direction to the one the virtual source implies, so directivity acts on
-    the path's first leg. Sources without a path keep their position (rel is reset to the straight line).
-    Returns how many sources were heard along a path."""
+    the path's first leg. Sources without a path keep their position (rel is reset to the straight line; their
+    rows of target, eff and f are left as they are). Returns how many sources were heard along a path."""
     count = 0
     nb = trans.shape[1]
     for i in range(pos.shape[0]):
-        straight = pos[i] - lis
+        sx, sy, sz = pos[i, 0] - lis[0], pos[i, 1] - lis[1], pos[i, 2] - lis[2]
         if not on[i]:
-            rel[i] = straight
+            rel[i, 0], rel[i, 1], rel[i, 2] = sx, sy, sz
             continue
         count += 1
-        d = np.sqrt(straight[0] ** 2 + straight[1] ** 2 + straight[2] ** 2)
-        dz = straight[2]
+        d = np.sqrt(sx * sx + sy * sy + sz * sz)
+        dz = sz
         L2 = plen[i]
         Lp = np.sqrt(L2 * L2 + dz * dz)
         lx, ly = last[i, 0] - lis[0], last[i, 1] - lis[1]
         r_last = np.sqrt(lx * lx + ly * ly)
-        u_p = _unit(np.array([lx, ly, dz * r_last / max(L2, 1e-9)]))
-        u_t = _unit(straight)
+        px, py, pz = _unit(lx, ly, dz * r_last / max(L2, 1e-9))
+        tx, ty, tz = _unit(sx, sy, sz)
         gp, gt = distance_gain_1(Lp, mode, d0, D, near_k), distance_gain_1(d, mode, d0, D, near_k)
         w_p, w_t = 0.0, 0.0
         for b in range(4, 7):
@@ -601,35 +611,42 @@ def combine_paths(on, pos, fwd, lis, trans, plen, last, first, pamp, rel, fresh,
             w_t += (gt * trans[i, b]) ** 2
         w = max(w_p + w_t, 1e-30)
         w_p, w_t = w_p / w, w_t / w
-        u = _unit(w_p * u_p + w_t * u_t)
+        ux, uy, uz = _unit(w_p * px + w_t * tx, w_p * py + w_t * ty, w_p * pz + w_t * tz)
         Lb = w_p * Lp + w_t * d
         gb = max(distance_gain_1(Lb, mode, d0, D, near_k), 1e-30)
         for b in range(nb):
             target[i, b] = np.sqrt((gp * pamp[i, b]) ** 2 + (gt * trans[i, b]) ** 2) / gb
-        rt = u * Lb
         if fresh[i]:
-            rel[i] = rt
+            rel[i, 0], rel[i, 1], rel[i, 2] = ux * Lb, uy * Lb, uz * Lb
         else:
-            rel[i] = rel[i] + (1.0 - k) * (rt - rel[i])
-        eff[i] = lis + rel[i]
+            rel[i, 0] += (1.0 - k) * (ux * Lb - rel[i, 0])
+            rel[i, 1] += (1.0 - k) * (uy * Lb - rel[i, 1])
+            rel[i, 2] += (1.0 - k) * (uz * Lb - rel[i, 2])
+        eff[i, 0], eff[i, 1], eff[i, 2] = lis[0] + rel[i, 0], lis[1] + rel[i, 1], lis[2] + rel[i, 2]
         # emission: along the first leg (path) or straight at the listener (transmission), blended
         fx, fy = first[i, 0] - pos[i, 0], first[i, 1] - pos[i, 1]
-        e = _unit(np.array([fx, fy, -dz * np.sqrt(fx * fx + fy * fy) / max(L2, 1e-9)]))
-        e = _unit(w_p * e - w_t * u_t)
-        v = -_unit(rel[i])
+        ex, ey, ez = _unit(fx, fy, -dz * np.sqrt(fx * fx + fy * fy) / max(L2, 1e-9))
+        ex, ey, ez = _unit(w_p * ex - w_t * tx, w_p * ey - w_t * ty, w_p * ez - w_t * tz)
+        vx, vy, vz = _unit(rel[i, 0], rel[i, 1], rel[i, 2])
+        vx, vy, vz = -vx, -vy, -vz
         # Rodrigues: the rotation taking e to v, applied to the forward
-        ax = np.array([e[1] * v[2] - e[2] * v[1], e[2] * v[0] - e[0] * v[2], e[0] * v[1] - e[1] * v[0]])
-        s = np.sqrt(ax[0] ** 2 + ax[1] ** 2 + ax[2] ** 2)
-        c = e[0] * v[0] + e[1] * v[1] + e[2] * v[2]
-        x = fwd[i]
-        if s < 1e-9:
+        ax, ay, az = ey * vz - ez * vy, ez * vx - ex * vz, ex * vy - ey * vx
+        sn = np.sqrt(ax * ax + ay * ay + az * az)
+        c = ex * vx + ey * vy + ez * vz
+        x0, x1, x2 = fwd[i, 0], fwd[i, 1], fwd[i, 2]
+        if sn < 1e-9:
             if c > 0:
-                f[i] = x
+                f[i, 0], f[i, 1], f[i, 2] = x0, x1, x2
                 continue
-            ax = np.array([-e[1], e[0], 0.0]) if abs(e[2]) < 0.9 else np.array([0.0, -e[2], e[1]])
-            s = 0.0
-        kx = _unit(ax)
-        kxx = np.array([kx[1] * x[2] - kx[2] * x[1], kx[2] * x[0] - kx[0] * x[2], kx[0] * x[1] - kx[1] * x[0]])
-        kd = kx[0] * x[0] + kx[1] * x[1] + kx[2] * x[2]
-        f[i] = x * c + kxx * s + kx * kd * (1.0 - c)
+            if abs(ez) < 0.9:
+                ax, ay, az = -ey, ex, 0.0
+            else:
+                ax, ay, az = 0.0, -ez, ey
+            sn = 0.0
+        kx, ky, kz = _unit(ax, ay, az)
+        cx, cy, cz = ky * x2 - kz * x1, kz * x0 - kx * x2, kx * x1 - ky * x0
+        kd = kx * x0 + ky * x1 + kz * x2
+        f[i, 0] = x0 * c + cx * sn + kx * kd * (1.0 - c)
+        f[i, 1] = x1 * c + cy * sn + ky * kd * (1.0 - c)
+        f[i, 2] = x2 * c + cz * sn + kz * kd * (1.0 - c)
     return count

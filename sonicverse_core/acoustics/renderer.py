@@ -37,18 +37,27 @@ signal with a NaN is refused; a live block's non-finite samples become zeros and
 ``stats["nonfinite_input"]``), gains are bounded, and should a listener's block still come out non-finite (its
 recursive states poisoned), that listener's filter, reflection and reverb states are cleared within the block and
 ``stats["recoveries"]`` counts it.
+
+In steady state (sources and listeners each within the occlusion tolerance of where their rays were last cast, no
+door moving; heads may turn and gains change) a block written into preallocated outputs (``render_block(outs)``)
+allocates nothing: FFTs run on fixed buffers (``fft.py``), every per-block expression is a compiled kernel writing
+into per-listener buffers, and no kernel allocates (tests/test_poison.py counts NumPy's and numba's allocations).
+Recasting rays, finding new paths, adding sources and the first block of a listener allocate.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-import scipy.fft as sfft
 
 from sonicverse_core.acoustics.early import image_amplitudes, lattice, wall_reflectance
-from sonicverse_core.acoustics.kernels import (accumulate, accumulate_sh, direct_geometry, distance_gains, encode_taps,
-                                               gather, image_taps, late_send, limit, mix_spectra, read_sources)
+from sonicverse_core.acoustics.kernels import (accumulate, accumulate_sh, add_tail, all_finite, crossfade_into,
+                                               direct_geometry, distance_gains, encode_taps, farther, gather,
+                                               groups_sending, head_rotation, image_taps, late_groups, late_send, limit,
+                                               mix_ramped, mix_spectra, onset_delays, pan_spectra, read_sources, rows_moved, scale_into,
+                                               shift_left, smooth_toward)
 from sonicverse_core.acoustics.occlusion import Occlusion, may_occlude
 
 from sonicverse_core.acoustics.probes import AIR_ABSORPTION, SPEED_OF_SOUND
@@ -218,10 +227,10 @@ class AcousticRenderer:
                 dec[:, 0] = 0.5 if cfg.output == "stereo" else np.sqrt(0.5)
                 if cfg.output == "stereo":
                     dec[:, 1] = [0.5 / np.sqrt(3), -0.5 / np.sqrt(3)]
-                self._er_decode = dec
+                self._er_decode = dec.astype(np.float32)
             self.subsystems.append("early_reflections")
         self._late_on = cfg.late_reverb and self.probes is not None
-        self.coupling = None
+        self.coupling, self._groups = None, 1
         if self._late_on:
             self._probe_rt = np.array([p.rt60 for p in self.probes])
             self._probe_vol = np.array([p.volume for p in self.probes])
@@ -234,6 +243,8 @@ class AcousticRenderer:
                 self._src_room = np.zeros(0, np.int64)
                 if len(scene.rooms) > 1:
                     self.subsystems.append("coupled_rooms")
+            # late sends: 0 the listener's room (or rooms unknown), 1 + r from room r
+            self._groups = len(self.coupling.rooms) + 1 if self.coupling is not None else 1
         max_delay = cfg.max_distance / SPEED_OF_SOUND + 0.01 + (self.hrtf.onsets.max() if self.hrtf else 0)
         if self._late_on:
             max_delay += MAX_MIXING_TIME  # the late send's pre-delay
@@ -245,6 +256,7 @@ class AcousticRenderer:
         self._cap = 0
         self._n = 0
         self._bank = np.zeros(1, np.float32)
+        self._live_idx: list[int] = []
         self._alloc_sources(8)
         self._state: list[dict] = []
         self._ramp = ((np.arange(B) + 1) / B).astype(np.float32)
@@ -269,6 +281,7 @@ class AcousticRenderer:
         g("_loop", (cap,), bool)
         g("_live", (cap,), bool)
         g("_ring", (cap, getattr(self, "hist", 1)), np.float32)
+        g("_spread_frac", (cap,), np.float64)
         if getattr(self, "paths", None) is not None:
             self.paths.grow(None, cap)
         if getattr(self, "coupling", None) is not None:
@@ -314,8 +327,12 @@ class AcousticRenderer:
         self._n += 1
         s = Source(self, i, live, attached_to)
         s.position, s.gain, s.forward = pos, float(gain), forward
+        if live:
+            self._live_idx.append(i)
+        self._spread_frac[i] = spread / 360.0
         for st in self._state:
             st["fresh"][i] = True
+            st["any_fresh"] = True
         self.sources.append(s)
         return s
 
@@ -324,11 +341,21 @@ class AcousticRenderer:
         lis = Listener(np.zeros(3))
         self.set_listener(lis, position, yaw, pitch)
         self.listeners.append(lis)
-        st = {"limit": 1.0, "scene_version": None}
+        B = self.cfg.block
+        st = {"limit": 1.0, "scene_version": None, "any_fresh": True, "out": np.zeros((2, B)),
+              "R": np.eye(3)}
         self._grow_state(st, self._cap)
         if self._er:
-            st["er_hist"] = np.zeros((self._C, max(self.er_nfft, self.cfg.block)), np.float32)
-            st["er_acc"] = np.zeros((2, self.er_nfft // 2 + 1), np.complex64)
+            st["er_tmp"] = np.zeros(B, np.float32)
+            if self.hrtf is not None:
+                from sonicverse_core.acoustics.fft import irfft_plan, rfft_plan
+
+                st["er_hist"] = np.zeros((self._C, self.er_nfft), np.float32)
+                st["er_fft"], st["er_A"] = rfft_plan(st["er_hist"])
+                st["er_acc"] = np.zeros((2, self.er_nfft // 2 + 1), np.complex64)
+                st["er_ifft"], st["er_y"] = irfft_plan(st["er_acc"], self.er_nfft)
+            else:
+                st["er_y"] = np.zeros((2, B), np.float32)
         if self._late_on:
             if self.cfg.reverb == "fdn":
                 from sonicverse_core.acoustics.reverb import FDNReverb
@@ -338,8 +365,16 @@ class AcousticRenderer:
                 from sonicverse_core.acoustics.reverb import ConvolutionReverb
 
                 st["conv"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._probe_rt,
-                                               **self._tail_colour())
+                                               groups=self._groups, **self._tail_colour())
             st["late_level"] = None
+            st["sends"] = np.zeros((self._groups, B), np.float32)
+            st["seen"] = np.zeros(self._groups, bool)
+            st["shapes"] = np.ones((self._groups, len(BANDS)))
+            st["shapes_key"] = None
+            if self.cfg.reverb == "fdn":
+                st["mid"] = np.ones(self._groups, np.float32)
+                st["mono"] = np.zeros(B, np.float32)
+                st["fdn_out"] = np.zeros((2, B))
         self._state.append(st)
         for src in exclude:
             self.set_heard(lis, src, False)
@@ -366,6 +401,18 @@ class AcousticRenderer:
                                   ("delay0", (cap,), np.float64)):  # per-block geometry, written by the kernel
             grow(key, shape, dtype)
         st["acc"] = np.zeros((2, 2, self.nf), np.complex64)
+        from sonicverse_core.acoustics.fft import irfft_plan
+
+        st["both_fft"], st["both"] = irfft_plan(st["acc"], self.nfft)  # both filters' outputs, unnormalised
+        grow("X", (cap, 2, self.nf), np.complex64)
+        grow("curve", (cap, self.nf), np.float32)
+        grow("delay_new", (cap, 2), np.float64)
+        grow("tri", (cap, 3), np.int64)
+        grow("w", (cap, 3), np.float64)
+        grow("occ_moved", (cap,), np.float64)
+        grow("group", (cap,), np.int64)
+        grow("use_occ", (cap,), bool, True)
+        st["ffts"] = {}  # forward plans over hist[:n], per source count n (the buffers above are new now)
         grow("occ", (cap, len(BANDS)), np.float64, 1.0)
         grow("occ_target", (cap, len(BANDS)), np.float64, 1.0)
         grow("occ_seg", (cap, 6), np.float64, np.nan)
@@ -387,8 +434,8 @@ class AcousticRenderer:
     @staticmethod
     def set_listener(lis: Listener, position, yaw, pitch=None) -> None:
         p = np.asarray(position, float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)) or not np.isfinite(yaw) or \
-                (pitch is not None and not np.isfinite(pitch)):
+        if p.shape != (3,) or not (math.isfinite(p[0]) and math.isfinite(p[1]) and math.isfinite(p[2])) or \
+                not math.isfinite(yaw) or (pitch is not None and not math.isfinite(pitch)):
             raise PoseError(f"listener pose must be finite, got {position}, yaw {yaw}, pitch {pitch}")
         lis.position, lis.yaw = p, float(yaw)
         if pitch is not None:
@@ -406,21 +453,27 @@ class AcousticRenderer:
                 self._pos[s.index] = self.scene.object(s.attached_to).sound_position()
         read_sources(self._bank, self._off[:n], self._len[:n], self._cursor[:n], self._loop[:n], self._gain[:n],
                      self._ring, w0, B)
-        for i in np.flatnonzero(self._live[:n]):
+        for i in self._live_idx:
             s = self.sources[i]
-            self._ring[i, w0:w0 + B] = 0.0 if s.pending is None else s.pending * np.float32(self._gain[i])
+            row = self._ring[i, w0:w0 + B]
+            if s.pending is None:
+                row.fill(0.0)
+            else:
+                scale_into(s.pending, self._gain[i], row)
             s.pending = None
         self.write = (w0 + B) % self.hist
 
-    def render_block(self) -> list[np.ndarray]:
-        """Advance one block; returns one (2, block) float32 array per listener."""
+    def render_block(self, outs: list | None = None) -> list[np.ndarray]:
+        """Advance one block; returns one (2, block) float32 array per listener: new arrays, or the ones in
+        ``outs`` (one preallocated (2, block) float32 array per listener), written in place."""
         if not self.listeners:
             raise ConfigError("add a listener before rendering")
         self._advance_sources()
-        outs = []
+        res = outs if outs is not None else []
         for li, lis in enumerate(self.listeners):
             st = self._state[li]
-            out = np.zeros((2, self.cfg.block))
+            out = st["out"]
+            out.fill(0.0)
             n = self._n
             if n:
                 if self.occlusion is not None:
@@ -432,67 +485,81 @@ class AcousticRenderer:
                     self.paths.update(st, pos, lis.position)
                     target, pos, fwd = self.paths.apply(st, pos, fwd, lis.position, target, self._rolloff, k, fresh)
                     self.stats["paths"] = self.paths.stats["paths"]
-                occ += (1 - k) * (target - occ)
-                occ[fresh] = target[fresh]
-                occ[st["mute"][:n]] = 0.0  # a source this listener does not hear: no direct, ER or late path
-                R = lis.rotation()
-                out += self._direct(st, lis, R, occ, pos, fwd)
+                # smoothed towards the target; fresh sources jump; one this listener does not hear: no direct, ER
+                # or late path
+                smooth_toward(occ, target, k, fresh, st["mute"][:n])
+                R = st["R"]
+                head_rotation(lis.yaw, lis.pitch, R)
+                self._direct(st, lis, R, occ, pos, fwd, out)
                 if self._er:
-                    out += self._early(st, lis, R, occ, pos)
+                    self._early(st, lis, R, occ, pos, out)
                 if self._late_on:
-                    out += self._late(st, lis, st["dist"][:n], occ)
-                fresh[:] = False
-            if not np.isfinite(out).all():
+                    self._late(st, lis, st["dist"][:n], occ, out)
+                if st["any_fresh"]:
+                    fresh[:] = False
+                    st["any_fresh"] = False
+            if not all_finite(out):
                 self._recover(st)
-                out[:] = 0.0
-            outs.append(self._limit(st, out))
+                out.fill(0.0)
+            if outs is None:
+                res.append(np.empty((2, self.cfg.block), np.float32))
+            st["limit"] = limit(out, res[li], st["limit"], 0.05)
         self.blocks += 1
-        return outs
+        return res
 
-    def _direct(self, st, lis, R, occ, pos, fwd) -> np.ndarray:
+    def _ffts(self, st, n: int):
+        """The forward plan over the first n sources' overlap-save histories (made once per source count)."""
+        plan = st["ffts"].get(n)
+        if plan is None:
+            from sonicverse_core.acoustics.fft import Plan
+
+            plan = st["ffts"][n] = Plan(st["hist"][:n], st["X"][:n])
+        return plan
+
+    def _direct(self, st, lis, R, occ, pos, fwd, out) -> None:
         """Every source's direct sound (or, without line of sight, its path: ``pos`` and ``fwd`` are the emitters'
-        positions and forwards, ``occ`` their per-band amplitude)."""
+        positions and forwards, ``occ`` their per-band amplitude), added into ``out``."""
         cfg, n, B = self.cfg, self._n, self.cfg.block
         dirs, dist, gain, amp, delay0 = (st[k][:n] for k in ("dirs", "dist", "gain_new", "amp", "delay0"))
-        direct_geometry(np.ascontiguousarray(pos), lis.position, R, np.ascontiguousarray(fwd), self._dir_alpha[:n],
-                        self._dir_sharp[:n], occ, AIR_ABSORPTION, *self._rolloff, SPEED_OF_SOUND, dirs, dist, gain,
-                        amp, delay0)
-        curve = amp @ self._band_matrix  # (n, nf)
-        spec = st["spec_new"][:n]
+        direct_geometry(pos, lis.position, R, fwd, self._dir_alpha[:n], self._dir_sharp[:n], occ, AIR_ABSORPTION,
+                        *self._rolloff, SPEED_OF_SOUND, dirs, dist, gain, amp, delay0)
+        curve = st["curve"][:n]
+        np.matmul(amp, self._band_matrix, out=curve)  # (n, nf) smooth per-band curves
+        spec, delay = st["spec_new"][:n], st["delay_new"][:n]
         if self.hrtf is not None:
-            tri, w = self.hrtf.weights(dirs, cfg.hrtf_interpolation)
-            spread = self._spread[:n] / 360.0
+            tri, w = self.hrtf.weights(dirs, cfg.hrtf_interpolation, out=(st["tri"][:n], st["w"][:n]))
+            spread = self._spread_frac[:n]
             mix_spectra(self.hrtf.spectra(self.nfft), tri, w, curve, spread, self._diffuse_spectrum(), spec)
-            onset = np.einsum("mk,mke->me", w, self.hrtf.onsets[tri])
-            if self._any_spread:
-                onset += (self.hrtf.onsets.mean(0)[None] - onset) * spread[:, None]
+            onset_delays(w, tri, self.hrtf.onsets, delay0, spread, self._mean_onset(), delay)
         else:
-            u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-            if cfg.output == "mono":
-                pan = np.full((n, 2), np.sqrt(0.5))
-            else:
-                pan = np.stack([np.sqrt(0.5 * (1 + u[:, 1])), np.sqrt(0.5 * (1 - u[:, 1]))], 1)
-            spec[:] = pan[:, :, None].astype(np.float32) * curve[:, None, :]
-            onset = np.zeros((n, 2))
-        delay = delay0[:, None] + onset
+            self._pan(dirs, curve, spec)
+            np.copyto(delay, delay0[:, None])
         fresh = st["fresh"][:n]
         p_delay, p_gain, p_spec = st["delay"][:n], st["gain"][:n], st["spec"][:n]
-        if np.any(fresh):
+        if st["any_fresh"]:
             p_delay[fresh], p_gain[fresh], p_spec[fresh] = delay[fresh], gain[fresh], spec[fresh]
         h = st["hist"][:n]
-        h[:, :, :-B] = h[:, :, B:]
+        shift_left(h.reshape(-1, self.nfft), B)
         gather(self._ring, self.write - B, p_delay, delay, float(cfg.sample_rate), p_gain[:, None], gain[:, None],
                h[:, :, -B:])  # (n, 2, B) fractional-delay taps, straight into the overlap-save input
-        X = sfft.rfft(h, axis=-1)
+        self._ffts(st, n).run()
         acc = st["acc"]
-        if accumulate(X, spec, p_spec, acc[1], acc[0]):
-            both = sfft.irfft(acc, self.nfft, axis=-1)[..., -B:]
-            y = both[0] + (both[1] - both[0]) * self._ramp
-        else:
-            y = sfft.irfft(acc[1], self.nfft, axis=-1)[:, -B:]
-        p_delay[:], p_gain[:] = delay, gain
+        changed = accumulate(st["X"][:n], spec, p_spec, acc[1], acc[0])
+        st["both_fft"].run()  # (2 filters, 2 ears, nfft), unnormalised
+        crossfade_into(st["both"], self._ramp, 1.0 / self.nfft, changed, out)
+        np.copyto(p_delay, delay)
+        np.copyto(p_gain, gain)
         st["spec"], st["spec_new"] = st["spec_new"], st["spec"]  # this block's filters become the previous ones
-        return y
+
+    def _pan(self, dirs, curve, spec) -> None:
+        """Without HRTFs: constant-power panning by the lateral component (stereo) or sqrt(1/2) (mono)."""
+        pan_spectra(dirs, curve, self.cfg.output == "mono", spec)
+
+    def _mean_onset(self) -> np.ndarray:
+        """The HRTF set's mean onset per ear (2,): a fully spread source's."""
+        if getattr(self, "_onset_mean", None) is None:
+            self._onset_mean = self.hrtf.onsets.mean(0)
+        return self._onset_mean
 
     def _diffuse_spectrum(self) -> np.ndarray:
         """Power-average HRTF magnitude over all measured directions (2, nf), zero phase: the fully spread source."""
@@ -521,7 +588,7 @@ class AcousticRenderer:
         """The probe for the listener's early reflections: the nearest one in the listener's room (the nearest
         overall where the room is unknown or has none); cached per listener while it stays within 5 cm."""
         key = st.get("probe_key")
-        if key is None or np.max(np.abs(key - p)) > 0.05:
+        if key is None or farther(key, p, 0.05):
             d2 = np.sum((self._probe_pos - p) ** 2, axis=1)
             if getattr(self, "coupling", None) is not None:  # the slice's room labels: a lookup, not polygon tests
                 room = self.coupling.room_of(p[None, :2])[0]
@@ -534,41 +601,45 @@ class AcousticRenderer:
             st["probe_key"], st["probe"] = p.copy(), int(np.argmin(d2))
         return st["probe"]
 
-    def _early(self, st, lis, R, occ, pos) -> np.ndarray:
-        """Image sources of the nearest probe's box, encoded in 2nd-order ambisonics, decoded binaurally. ``pos``:
-        the emitters (a source heard along a path is imaged from where its path puts it: outside the listener's
-        room, it has no images, and its room's sound arrives by the coupled late reverb)."""
+    def _early(self, st, lis, R, occ, pos, out) -> None:
+        """Image sources of the nearest probe's box, encoded in 2nd-order ambisonics, decoded binaurally, added into
+        ``out``. ``pos``: the emitters (a source heard along a path is imaged from where its path puts it: outside
+        the listener's room, it has no images, and its room's sound arrives by the coupled late reverb)."""
         cfg, n, B = self.cfg, self._n, self.cfg.block
         k = self._nearest_probe(st, lis.position)
         if k not in self._er_amp:
             self._er_amp[k] = image_amplitudes(self._refl[k], cfg.er_order)
         q, m, _ = lattice(cfg.er_order)
         delay, gain, Y = st["er_delay_new"][:n], st["er_gain_new"][:n], st["er_Y_new"][:n]
-        image_taps(np.ascontiguousarray(pos), *self._er_box[k], q, m, self._er_amp[k], lis.position, R,
-                   *self._rolloff, np.ascontiguousarray(occ[:, MID].mean(1)), self._er_bulk, SPEED_OF_SOUND, delay,
-                   gain, Y)
+        lo, hi = self._er_box[k]
+        image_taps(pos, lo, hi, q, m, self._er_amp[k], lis.position, R, *self._rolloff, occ, self._er_bulk,
+                   SPEED_OF_SOUND, delay, gain, Y)
         fresh = st["fresh"][:n]
         pd, pg, pY = st["er_delay"][:n], st["er_gain"][:n], st["er_Y"][:n]
-        if np.any(fresh):
+        if st["any_fresh"]:
             pd[fresh], pg[fresh], pY[fresh] = delay[fresh], gain[fresh], Y[fresh]
         amb = st["amb"]
-        encode_taps(self._ring, self.write - B, pd, delay, float(cfg.sample_rate), pg, gain, pY, Y, self._ramp, amb)
+        encode_taps(self._ring, self.write - B, pd, delay, float(cfg.sample_rate), pg, gain, pY, Y, self._ramp, amb,
+                    st["er_tmp"])
         for a, b in (("er_delay", "er_delay_new"), ("er_gain", "er_gain_new"), ("er_Y", "er_Y_new")):
             st[a], st[b] = st[b], st[a]
         if self.hrtf is None:
-            return self._er_decode @ amb
+            np.matmul(self._er_decode, amb, out=st["er_y"])
+            add_tail(st["er_y"], 1.0, out)
+            return
         h = st["er_hist"]
-        h[:, :-B] = h[:, B:]
+        shift_left(h, B)
         h[:, -B:] = amb
-        A = sfft.rfft(h, axis=-1)
-        acc = st["er_acc"]
-        accumulate_sh(A, self._er_filters, acc)
-        return sfft.irfft(acc, self.er_nfft, axis=-1)[:, -B:]
+        st["er_fft"].run()
+        accumulate_sh(st["er_A"], self._er_filters, st["er_acc"])
+        st["er_ifft"].run()
+        add_tail(st["er_y"], 1.0 / self.er_nfft, out)
 
-    def _late(self, st, lis, dist, occ) -> np.ndarray:
+    def _late(self, st, lis, dist, occ, out) -> None:
+        """The late reverb of every source, added into ``out``."""
         cfg, n, B = self.cfg, self._n, self.cfg.block
         key = st.get("late_key")
-        if key is None or np.max(np.abs(key - lis.position)) > 0.01:  # probe interpolation, per centimetre moved
+        if key is None or farther(key, lis.position, 0.01):  # probe interpolation, per centimetre moved
             w = 1 / np.maximum(np.linalg.norm(self._probe_pos - lis.position, axis=1), 0.1) ** 2
             if self.coupling is not None:  # the listener's own room's probes (its neighbours come by coupling)
                 st["lis_room"] = int(self.coupling.room_of(lis.position[None, :2])[0])
@@ -590,44 +661,62 @@ class AcousticRenderer:
             level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
             t_mix = float(np.clip(np.sqrt(max(vol, 0.0)) / 1000.0, 0.005, MAX_MIXING_TIME))  # Polack: sqrt(V) ms
             st["late_key"], st["late_params"] = lis.position.copy(), (w, lo, hi, level, t_mix)
+            st["room_reverbs"] = int(np.count_nonzero(w > 1e-4))  # tails convolved for this listener
         w, lo, hi, level, t_mix = st["late_params"]
         # Barron & Lee 1988: the late level falls with source distance; a source behind walls excites the
         # coupled space: the send keeps the square root of the direct path's mid-band transmission
         group, use_occ, shapes = self._late_groups(st, n)
-        self.stats["room_reverbs"] = int(np.count_nonzero(w > 1e-4))  # tails convolved for this listener
-        self.stats["rooms_sending"] = int(len(np.unique(group[st["send"][:n] > 0]))) if n else 0
-        sends = np.empty((len(shapes), B), np.float32)
+        self.stats["room_reverbs"] = st["room_reverbs"]
+        sends = st["sends"]
         late_send(self._ring, (self.write - B) % self.hist, dist, occ, use_occ, group, lo, st["send"][:n],
                   st["send_delay"][:n], st["fresh"][:n], sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
-        p_level = st["late_level"] if st["late_level"] is not None else level
-        lv = p_level + (level - p_level) * self._ramp64
+        self.stats["rooms_sending"] = groups_sending(group, st["send"][:n], st["seen"])
+        lv0 = st["late_level"] if st["late_level"] is not None else level
         st["late_level"] = level
         if "fdn" in st:
             old = st.get("fdn_rt")
             if old is None or abs(old[0] - lo) > 0.002 * lo or abs(old[1] - hi) > 0.002 * hi:  # 0.2 %
                 st["fdn"].set_rt60(lo, hi)
                 st["fdn_rt"] = (lo, hi)
-            mono = (sends * shapes[:, 4:7].mean(1)[:, None]).sum(0).astype(np.float32)
-            return st["fdn"].process(mono) * lv
-        return st["conv"].process(sends, w, shapes) * lv
+            np.matmul(st["mid"], sends, out=st["mono"])  # the groups' mid-band couplings
+            add = st["fdn"].process(st["mono"], out=st["fdn_out"])
+            mix_ramped(add, 1.0, 1.0, lv0, level, 1.0, out)
+            return
+        st["conv"].process(sends, w, shapes, out=out, level=(lv0, level), shapes_key=st["shapes_key"])
 
     def _late_groups(self, st, n: int):
         """Per source, which send it joins (0: the listener's room, or rooms unknown; 1 + r: room r, filtered by
         its coupling to the listener's room) and whether its send falls with the direct path's transmission (rooms
-        unknown); the groups' per-band amplitudes (G, 9)."""
-        if self.coupling is None or st.get("lis_room", -1) < 0:
-            return np.zeros(n, np.int64), np.ones(n, bool), np.ones((1, len(BANDS)))
+        unknown); the groups' per-band amplitudes (G, 9), rewritten (and ``st["shapes_key"]`` changed) only when
+        the listener's room or the coupling changes."""
+        group, use_occ = st["group"][:n], st["use_occ"][:n]
+        lr = st.get("lis_room", -1)
+        if self.coupling is None or lr < 0:
+            group.fill(0)
+            use_occ.fill(True)
+            if st["shapes_key"] != -1:
+                st["shapes"][:] = 1.0
+                st["shapes_key"] = -1
+                if "mid" in st:
+                    st["mid"][:] = 1.0
+            return group, use_occ, st["shapes"]
         c, pos = self.coupling, self._pos[:n]
-        moved = ~(np.max(np.abs(self._src_room_at[:n] - pos), axis=1) <= 0.05)
-        if moved.any():
-            idx = np.flatnonzero(moved)
+        moved = st["group_moved"] if "group_moved" in st and len(st["group_moved"]) >= n else None
+        if moved is None:
+            moved = st["group_moved"] = np.zeros(self._cap, bool)
+        if rows_moved(self._src_room_at[:n], pos, 0.05, moved[:n]):
+            idx = np.flatnonzero(moved[:n])
             self._src_room[idx] = c.room_of(pos[idx, :2])
             self._src_room_at[idx] = pos[idx]
-        room, lr = self._src_room[:n], st["lis_room"]
-        group = np.where((room >= 0) & (room != lr), room + 1, 0).astype(np.int64)
-        shapes = np.ones((len(c.rooms) + 1, len(BANDS)))  # the reverb transforms only the groups with sound
-        shapes[1:] = c.transfer()[:, lr]
-        return group, room < 0, shapes
+        late_groups(self._src_room[:n], lr, group, use_occ)
+        key = (c.scene.dynamic_version, lr)  # the transfer changes with the doors only
+        if st["shapes_key"] != key:
+            st["shapes"][1:] = c.transfer()[:, lr]  # the reverb transforms only the groups with sound
+            st["shapes"][0] = 1.0
+            st["shapes_key"] = key
+            if "mid" in st:
+                st["mid"][:] = st["shapes"][:, MID].mean(1)
+        return group, use_occ, st["shapes"]
 
     def _recover(self, st: dict) -> None:
         """A listener's block came out non-finite: clear every state that carries it into later blocks (filter
@@ -643,12 +732,6 @@ class AcousticRenderer:
         bad = ~np.isfinite(self._ring)
         if bad.any():
             self._ring[bad] = 0.0
-
-    @staticmethod
-    def _limit(st, out: np.ndarray) -> np.ndarray:
-        res = np.empty(out.shape, np.float32)
-        st["limit"] = limit(np.ascontiguousarray(out, np.float64), res, st["limit"], 0.05)
-        return res
 
     def render(self, seconds: float) -> list[np.ndarray]:
         """Render ``seconds`` of audio: one (2, n) float32 array per listener."""

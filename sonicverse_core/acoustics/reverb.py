@@ -65,13 +65,17 @@ class FDNReverb:
         self.zi[:] = 0.0
         self.pos = 0
 
-    def process(self, x: np.ndarray) -> np.ndarray:
-        """x : (block,) mono send -> (2, block) float64 diffuse tail (compiled per-sample loop)."""
+    def process(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """x : (block,) mono send -> (2, block) float64 diffuse tail (compiled per-sample loop); written into
+        ``out`` when given (then nothing is allocated)."""
         from sonicverse_core.acoustics.kernels import fdn_process
 
-        out = np.empty((2, len(x)))
-        self.pos = fdn_process(np.asarray(x, np.float64), out, self.buf, self.pos, self.delays, self.b0, self.p,
-                               self.zi, self.cl, self.cr, self.norm)
+        if out is None:
+            out = np.empty((2, len(x)))
+        if getattr(self, "_y", None) is None:
+            self._y = np.empty(len(self.delays))
+        self.pos = fdn_process(x, out, self.buf, self.pos, self.delays, self.b0, self.p, self.zi, self.cl, self.cr,
+                               self.norm, self._y)
         return out
 
 
@@ -146,7 +150,9 @@ class ConvolutionReverb:
     compares the two). The default late reverb."""
 
     def __init__(self, sample_rate: int, block: int, probe_rt60s, seconds: float = 3.0, seed: int = 0,
-                 gains: np.ndarray | None = None, coherence: np.ndarray | None = None):
+                 gains: np.ndarray | None = None, coherence: np.ndarray | None = None, groups: int = 1):
+        from sonicverse_core.acoustics.fft import irfft_plan, rfft_plan
+
         self.B = B = block
         self.sample_rate = sample_rate
         self.nf = B + 1
@@ -157,53 +163,78 @@ class ConvolutionReverb:
         self.H = [_partitions(key(rt), sample_rate, B, P, seed + k, key(gains), key(coherence))
                   for k, rt in enumerate(probe_rt60s)]
         self.fdl = np.zeros((P, self.nf), np.complex64)
-        self._Y = np.zeros((2, self.nf), np.complex64)
         self.t = 0
-        self.prev_in = np.zeros((1, B))
-        self.w = None
+        self.G = groups
+        # per block, in fixed buffers: [previous | this] block of every group's send -> spectra; one tail's
+        # spectrum -> its samples (the inverse is unnormalised: 1 / 2B goes into the output gain)
+        self._frame = np.zeros((groups, 2 * B), np.float32)
+        self._fwd, self._X = rfft_plan(self._frame)
+        self._Y = np.zeros((2, self.nf), np.complex64)
+        self._inv, self._y = irfft_plan(self._Y, 2 * B)
+        self._live = np.zeros(groups, bool)
+        self._curves = np.ones((groups, self.nf), np.float32)
+        self._shaped, self._shapes_key = False, None
+        self.w = np.zeros(len(self.H))
+        self._w_set = False
 
     def reset(self) -> None:
         """Forget the input history (the renderer's recovery from a non-finite value)."""
         self.fdl[:] = 0
-        self.prev_in[:] = 0.0
+        self._frame[:] = 0.0
 
-    def process(self, x: np.ndarray, weights: np.ndarray, shapes: np.ndarray | None = None) -> np.ndarray:
+    def _set_shapes(self, shapes) -> None:
+        """Per-group per-band amplitudes (G, 9) -> smooth curves over the FFT bins (linear in log frequency between
+        band centres); none at all (a plain sum) when every amplitude is 1."""
+        shapes = np.asarray(shapes, float).reshape(self.G, len(BANDS))
+        self._shaped = not np.all(shapes == 1)
+        if self._shaped:
+            f = np.fft.rfftfreq(2 * self.B, 1 / self.sample_rate)
+            lf = np.log2(np.maximum(f, BANDS[0]))
+            bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
+            self._curves[:] = shapes @ bins
+
+    def process(self, x: np.ndarray, weights: np.ndarray, shapes: np.ndarray | None = None,
+                out: np.ndarray | None = None, level: tuple = (1.0, 1.0), shapes_key=None) -> np.ndarray:
         """x (block,) mono send, or (G, block) sends each shaped by its row of ``shapes`` (G, 9) per-band amplitudes
-        (the coupling of the room the group's sources are in); weights (n_probes,) summing to 1 -> (2, block)."""
-        B, P = self.B, self.P
-        x = np.atleast_2d(np.asarray(x, float))
-        if self.prev_in.shape != x.shape:  # a first block with more groups: they start from silence
-            prev = np.zeros(x.shape)
-            prev[: len(self.prev_in)] = self.prev_in[: len(x)]
-            self.prev_in = prev
-        live = np.flatnonzero(np.any(x != 0, axis=1) | np.any(self.prev_in != 0, axis=1))
-        frame = np.concatenate([self.prev_in[live], x[live]], axis=1)
-        self.prev_in = x.copy()
-        s = self.t % P
-        X = np.fft.rfft(frame, axis=-1)  # only the groups that carry sound (one FFT each)
-        if shapes is not None:
-            shapes = np.asarray(shapes, float)[live]
-        if len(live) == 0:
-            self.fdl[s] = 0.0
-        elif shapes is None or np.all(shapes == 1):
-            self.fdl[s] = X.sum(0)
-        else:  # a smooth per-band curve (linear in log frequency between band centres) per group
-            if getattr(self, "_band_bins", None) is None:
-                f = np.fft.rfftfreq(2 * B, 1 / self.sample_rate)
-                lf = np.log2(np.maximum(f, BANDS[0]))
-                self._band_bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
-            self.fdl[s] = np.einsum("gf,gf->f", X, shapes @ self._band_bins)
-        off = P - 1 - s
-        w_old = weights if self.w is None else self.w
-        ramp = (np.arange(B) + 1) / B
-        out = np.zeros((2, B))
-        from sonicverse_core.acoustics.kernels import fdl_mac
+        (the coupling of the room the group's sources are in); weights (n_probes,) summing to 1 -> (2, block)
+        float64, added into ``out`` when given, scaled by the late level ramped from level[0] to level[1].
+        ``shapes_key``: a value that changes whenever ``shapes`` does (the curves are rebuilt then; without a key,
+        every block). With ``out`` and a key, a block allocates nothing."""
+        from sonicverse_core.acoustics.kernels import fdl_fill, fdl_mac, live_rows, mix_ramped, shift_left
 
-        Y = self._Y
-        for k in np.flatnonzero((weights > 1e-4) | (w_old > 1e-4)):
-            fdl_mac(self.fdl, self.H[k], off, Y)
-            y = np.fft.irfft(Y, 2 * B, axis=-1)[:, B:]
-            out += y * (w_old[k] + (weights[k] - w_old[k]) * ramp)
-        self.w = np.asarray(weights, float).copy()
+        B, P = self.B, self.P
+        x = x.reshape(-1, B)
+        if len(x) != self.G:
+            raise ValueError(f"expected {self.G} send(s), got {len(x)}")
+        if out is None:
+            out = np.zeros((2, B))
+        if shapes_key is None or shapes_key != self._shapes_key:
+            if shapes is None:
+                self._shaped = False
+            else:
+                self._set_shapes(shapes)
+            self._shapes_key = shapes_key
+        frame = self._frame
+        shift_left(frame, B)  # this block's first half: the previous block
+        frame[:, B:] = x
+        s = self.t % P
+        if live_rows(frame[:, B:], frame[:, :B], self._live):
+            self._fwd.run()  # every group's spectrum (a few rows of 2B: cheaper than picking the live ones)
+            fdl_fill(self._X, self._curves, self._live, self._shaped, self.fdl[s])
+        else:
+            self.fdl[s].fill(0)
+        off = P - 1 - s
+        if not self._w_set:  # the first block: no ramp from an earlier mix
+            self.w[:] = weights
+            self._w_set = True
+        scale = 1.0 / (2 * B)
+        for k in range(len(self.H)):
+            w0, w1 = float(self.w[k]), float(weights[k])
+            if w0 <= 1e-4 and w1 <= 1e-4:
+                continue
+            fdl_mac(self.fdl, self.H[k], off, self._Y)
+            self._inv.run()
+            mix_ramped(self._y, w0, w1, level[0], level[1], scale, out)
+        self.w[:] = weights
         self.t += 1
         return out
