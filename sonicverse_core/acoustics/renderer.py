@@ -274,14 +274,13 @@ class AcousticRenderer:
         g("_gain", (cap,), np.float64)
         g("_dir_alpha", (cap,), np.float64)
         g("_dir_sharp", (cap,), np.float64, 1.0)
-        g("_spread", (cap,), np.float64)
         g("_off", (cap,), np.int64)
         g("_len", (cap,), np.int64, 1)
         g("_cursor", (cap,), np.int64)
         g("_loop", (cap,), bool)
         g("_live", (cap,), bool)
         g("_ring", (cap, getattr(self, "hist", 1)), np.float32)
-        g("_spread_frac", (cap,), np.float64)
+        g("_spread_frac", (cap,), np.float64)  # spread / 360
         if getattr(self, "paths", None) is not None:
             self.paths.grow(None, cap)
         if getattr(self, "coupling", None) is not None:
@@ -322,8 +321,7 @@ class AcousticRenderer:
             self._len[i] = len(signal)
             self._bank = np.concatenate([self._bank, signal])
         self._cursor[i], self._loop[i], self._live[i] = 0, bool(loop), bool(live)
-        self._dir_alpha[i], self._dir_sharp[i], self._spread[i] = directivity, sharpness, spread
-        self._any_spread = bool(np.any(self._spread[: i + 1] > 0))
+        self._dir_alpha[i], self._dir_sharp[i] = directivity, sharpness
         self._n += 1
         s = Source(self, i, live, attached_to)
         s.position, s.gain, s.forward = pos, float(gain), forward
