@@ -151,6 +151,7 @@ def test_metrics():
     assert np.allclose(w["ci95"], [0.01848, 0.21323], atol=1e-4) and w["mean"] == 2 / 30
     z = rate_ci95([0] * 30)
     assert z["ci95"][0] == 0.0 and np.isclose(z["ci95"][1], 0.11351, atol=1e-4)
+    assert rate_ci95([1] * 30)["ci95"][1] == 1.0  # exactly, not 0.9999999999999999
     assert SUCCESS_RADIUS == 0.36
 
 

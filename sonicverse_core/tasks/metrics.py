@@ -66,4 +66,6 @@ def rate_ci95(outcomes) -> dict:
     den = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / den
     half = z / den * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return {"mean": p, "ci95": [max(0.0, centre - half), min(1.0, centre + half)], "n": n}
+    low, high = max(0.0, centre - half), min(1.0, centre + half)
+    # at p = 0 (1) the bound is exactly 0 (1); rounding would print 0.9999999999999999
+    return {"mean": p, "ci95": [0.0 if p == 0 else low, 1.0 if p == 1 else high], "n": n}
