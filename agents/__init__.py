@@ -11,6 +11,7 @@ IMPLEMENTATIONS = {
     "AudioGoal": _NAV, "AudioPointGoal": _NAV, "SemanticAudioNav": _NAV,
     "SpeakerFollowing": {"random": "agents.scripted:RandomAgent", "oracle": "agents.following:OracleFollower",
                          "scripted": "agents.following:ScriptedFollower"},
+    "VoiceRetrieval": {"random": "agents.scripted:RandomAgent", "oracle": "agents.retrieval:OracleRetriever"},
 }
 
 

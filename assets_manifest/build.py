@@ -33,6 +33,12 @@ def build() -> dict:
     assets.append({"name": "asr/pocketsphinx-en-us", "kind": "speech-model", "licence": "BSD-2-Clause",
                    "origin": "PyPI package pocketsphinx==5.1.1 (its bundled en-us model)", "sha256": None,
                    "size": None})
+    from agents.voice import WEIGHTS
+
+    assets.append({"name": "asr/voice-commands", "kind": "speech-model", **PROCEDURAL,
+                   "origin": "trained by Sonicverse on espeak-ng speech: `sonicverse task train-recogniser --seed 0` "
+                   "(agents/voice.py), shipped as agents/data/voice_commands.pt",
+                   "sha256": sha256_file(WEIGHTS), "size": WEIGHTS.stat().st_size})
     return {"version": 1, "assets": assets}
 
 

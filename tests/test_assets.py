@@ -69,3 +69,11 @@ def test_missing_sofa_file(tmp_path):
 
     with pytest.raises(AssetError, match="not found"):
         load_sofa(tmp_path / "none.sofa")
+
+
+def test_the_shipped_recogniser_weights_match_the_manifest():
+    from agents.voice import WEIGHTS
+    from assets_manifest import sha256_file
+
+    e = entry("asr/voice-commands")
+    assert WEIGHTS.is_file() and sha256_file(WEIGHTS) == e["sha256"], "retrained? regenerate the manifest"

@@ -46,6 +46,8 @@ def table(d):
         ["bench", "audio", "--sources", "0"], ["bench", "audio", "--seconds", "nan"],
         ["bench", "rays", "--rays", "0"], ["bench", "accuracy", "--reference-rays", "10"],
         ["bench", "fidelity", "--rays", "5"],
+        ["bench", "recogniser", "--commands", "0"], ["bench", "recogniser", "--homes", "x"],
+        ["task", "train-recogniser", "--epochs", "0"], ["task", "train-recogniser", "--out", str(d / "w.txt")],
         ["bench", "vr", "--sizes", "512"], ["bench", "vr", "--frames", "2"], ["bench", "vr", "--audio-seconds", "-1"],
         ["eval", "--task", "AudioGoal", "--agent", "oracle", "--episodes", "0"],
         ["eval", "--task", "AudioGoal", "--agent", "oracle", "--seed", "-1"],

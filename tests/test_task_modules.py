@@ -346,3 +346,57 @@ def test_hrtf_decoding_filters_are_fitted_once_per_set():
     assert a is b and bulk == bulk2 and not a.flags.writeable
     c, _ = h.ambisonic_filters(1, 512)
     assert c.shape[0] == 4 and a.shape[0] == 9
+
+
+# --- voice retrieval --------------------------------------------------------------------------------------------
+def _retrieval(agent, seed, **kw):
+    from agents import make_agent
+
+    env = T.make_env("VoiceRetrieval", scenes=HOME, sensors=("audio", "pose"), **kw)
+    obs, info = env.reset(seed=seed)
+    ag = make_agent(agent, np.random.default_rng(seed), "VoiceRetrieval")
+    ag.reset(env, obs, info)
+    done, heard = False, []
+    while not done:
+        obs, r, term, trunc, info = env.step(ag.act(obs, info))
+        heard.append(float(np.sqrt(np.mean(obs["audio"] ** 2))))
+        done = term or trunc
+    env.close()
+    return info["metrics"], env, np.array(heard), term
+
+
+def test_voice_retrieval_oracle_fetches_and_the_scores_follow_their_definitions():
+    m, env, heard, term = _retrieval("oracle", 3)
+    t, w = env.task, env.home.world
+    assert term and m["sr"] == 1.0 and m["command_accuracy"] == 1.0
+    assert t.placed in t.targets and np.hypot(*(w.scene.object(t.placed).position[:2] - t.person_xy)) <= 1.0
+    assert env.episode.category in t.placed and env.episode.text.endswith(
+        {"straight_chair": "chair"}.get(env.episode.category, env.episode.category))
+    assert 0 < m["spl"] <= 1.0 and m["spl"] == pytest.approx(t.shortest / max(t.shortest, env.path_length))
+    assert heard[:20].max() > 0  # the command reaches the robot's ears at the start
+
+
+def test_voice_retrieval_interactions():
+    env = T.make_env("VoiceRetrieval", scenes=HOME, sensors=("pose",))
+    env.reset(seed=1)
+    w, t = env.home.world, env.task
+    _, r, term, _, _ = env.step([0.0, 0.0, 1.0])  # nothing in reach: nothing happens
+    assert w.carried is None and not term
+    from sonicverse_core.tasks.retrieval import approach_points
+
+    name = next(n for n in t.targets if len(approach_points(w, n)))
+    spot = approach_points(w, name)[0]
+    v = w.scene.object(name).position[:2] - spot
+    w.place_robot(spot[0], spot[1], math.degrees(math.atan2(v[1], v[0])))
+    _, r, term, _, info = env.step([0.0, 0.0, 1.0])
+    assert info["carrying"] is not None and not term and r > 0.5 and t.understood == (info["carrying"] in t.targets)
+    assert env.source.gain == 0.0 and t.calls.gain == 1.0  # the person stops asking and calls
+    _, r, term, _, info = env.step([0.0, 0.0, 1.0])  # put down far from the person: the episode ends, failed
+    if term:
+        assert not info["success"] and info["metrics"]["sr"] == 0.0
+    env.close()
+
+
+def test_voice_retrieval_random_never_succeeds():
+    m, env, _, _ = _retrieval("random", 2, max_steps=60)
+    assert m["sr"] == 0.0 and m["command_accuracy"] == 0.0

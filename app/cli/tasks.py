@@ -42,6 +42,26 @@ def cmd_bench_env(a) -> int:
     return 0
 
 
+def cmd_train_recogniser(a) -> int:
+    from agents.voice import WEIGHTS, train
+
+    def progress(i, n):  # a line at each quarter of the synthesis (the epochs are logged with --verbose)
+        if i in {n // 4, n // 2, 3 * n // 4, n}:
+            print(f"synthesised {i}/{n} utterances", file=sys.stderr)
+
+    res = train(a.seed, a.epochs, a.per_class, a.out or WEIGHTS, progress=progress)
+    print(json.dumps(res) if a.json else f"weights: {res['weights']} ({res['utterances']} utterances, "
+          f"final training accuracy {res['history'][-1]['train_accuracy']:.3f})")
+    return 0
+
+
+def cmd_bench_recogniser(a) -> int:
+    from app.bench.recogniser import bench_recogniser
+
+    print(json.dumps(bench_recogniser(a.commands, a.seed, a.homes, not a.no_baseline)))
+    return 0
+
+
 def cmd_task_list(a) -> int:
     from sonicverse_core.tasks.registry import TASKS
 
@@ -93,7 +113,7 @@ def add_task_commands(sub, bench_sub) -> None:
 
     t = sub.add_parser("task", help="the task registry: list the tasks, run one with an agent",
                        description="Every task (navigation, speaker following, orientation training) and its agents.")
-    ts = t.add_subparsers(dest="task_cmd", required=True, metavar="{list,run}")
+    ts = t.add_subparsers(dest="task_cmd", required=True, metavar="{list,run,train-recogniser}")
     tl = ts.add_parser("list", help="list the tasks, their agents and metrics")
     tl.add_argument("--json", action="store_true", help="print one JSON list")
     tl.set_defaults(func=cmd_task_list)
@@ -130,6 +150,31 @@ def add_task_commands(sub, bench_sub) -> None:
     g.add_argument("--no-render", action="store_true", help="do not render the stimuli (the model needs no audio)")
     tr.add_argument("--json", action="store_true", help="print one JSON object")
     tr.set_defaults(func=cmd_task_run)
+
+    tt = ts.add_parser("train-recogniser", help="train the spoken-command recogniser (voice retrieval) from scratch",
+                       description="Synthesise commands in the training voices (espeak-ng), augment them with random "
+                       "rooms and noise, train the keyword classifier (torch, CPU) and write its weights (the "
+                       "project ships them: agents/data/voice_commands.pt).")
+    tt.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
+    tt.add_argument("--epochs", type=A.count(1, 1000), default=24, help="epochs (default: %(default)s)")
+    tt.add_argument("--per-class", type=A.count(2, 100_000), default=160,
+                    help="utterances per class (default: %(default)s)")
+    tt.add_argument("--out", default=None, type=A.out_file(".pt"), help="weights file (default: the shipped one)")
+    tt.add_argument("--json", action="store_true", help="print one JSON object")
+    tt.set_defaults(func=cmd_train_recogniser)
+
+    br = bench_sub.add_parser("recogniser", help="spoken commands at the robot's ears: ours vs pocketsphinx",
+                              description="Commands in voices the recogniser was not trained on, rendered from the "
+                              "person's mouth to the robot's ears in the test homes (same room, next room through "
+                              "an open door); command accuracy of the keyword classifier and of pocketsphinx with "
+                              "a grammar of the same commands, in the same run.")
+    br.add_argument("--commands", type=A.count(1, 100_000), default=100,
+                    help="commands per condition (default: %(default)s)")
+    br.add_argument("--homes", type=A.count(1, 1000), default=4, help="test homes (default: %(default)s)")
+    br.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
+    br.add_argument("--no-baseline", action="store_true", help="skip pocketsphinx")
+    br.add_argument("--json", action="store_true", help="(always JSON)")
+    br.set_defaults(func=cmd_bench_recogniser)
 
     from app.tasks.evaluate import TASK_NAMES
 
