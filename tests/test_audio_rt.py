@@ -199,8 +199,10 @@ def test_round_trip_is_two_server_periods_and_the_mic_reaches_the_robot(running)
     period = burst_period(FS, B)
     # four periods: burst_lags needs burst + max_lag (a period) after each burst's start, and the first burst starts
     # anywhere in the first period, so three periods held only one whole burst for about half the start phases
-    while sum(len(x) for x in sent) < 4 * period:
-        eng.wait_callbacks(20)
+    for _ in range(400):  # bounded: a stream that stopped fails here with its telemetry, not at the suite's timeout
+        if sum(len(x) for x in sent) >= 4 * period:
+            break
+        assert eng.wait_callbacks(20) > 0, (eng.poll(), eng.events, eng.telemetry())
         eng.set_poses((2.0, 2.5, 1.6, 0.0, 0.0), robots=[(1.5, 1.0, 0.4, 0.0)])
         sent.append(out.read()[0])
         back.append(mic.read()[0])

@@ -168,10 +168,22 @@ class AudioCore:
         self._dur = np.zeros((1, 1), np.float32)
 
     def warm_up(self) -> None:
-        """Render the first blocks before the stream starts: JIT caches load, every occlusion ray is cast once."""
+        """Render the first blocks before the stream starts: JIT caches load, every occlusion ray is cast once.
+        The kernels that only run once the stream does (a microphone block, a pose ramp, a door check) are called
+        here too: compiled in the callback they would cost seconds, and two workers compiling the same kernel at the
+        same moment race on numba's cache files."""
+        from sonicverse_core.acoustics.kernels import lerp, scale_into
+
         for _ in range(self.warmup_blocks):
+            if self.mic is not None:
+                self.mic.pending = self.mic_block  # silence, through the live path
             self._apply_poses()
-            self.r.render_block()
+            self.r.render_block(self.outs)
+        scratch = np.zeros_like(self.interp.cur)
+        lerp(self.interp.cur, self.interp.cur, 1.0, scratch)
+        scale_into(self.mic_block, 1.0, np.zeros_like(self.mic_block))
+        farther(self.door_state, self.door_state, 0.0)
+        all_finite(self.mic_block)
 
     def _apply_poses(self) -> None:
         L, sh = self.L, self.sh

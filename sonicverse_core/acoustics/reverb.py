@@ -176,6 +176,12 @@ class ConvolutionReverb:
         self._shaped, self._shapes_key = False, None
         self.w = np.zeros(len(self.H))
         self._w_set = False
+        # compile (or load) the per-block kernels now: one first called in the first block with sound would stall a
+        # real-time caller for as long as numba takes to compile it (the stream's watchdog calls that a lost device)
+        from sonicverse_core.acoustics.kernels import fdl_fill, live_rows
+
+        live_rows(self._frame[:, B:], self._frame[:, :B], self._live)
+        fdl_fill(self._X, self._curves, self._live, False, self.fdl[0])
 
     def reset(self) -> None:
         """Forget the input history (the renderer's recovery from a non-finite value)."""
