@@ -1,0 +1,58 @@
+"""The renderer's settings (:class:`RenderConfig`), checked when made: a bad value is a ConfigError, never a
+renderer that misbehaves later."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from sonicverse_core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    sample_rate: int = 48_000
+    block: int = 256
+    output: str = "binaural"  # binaural | stereo (pan) | mono
+    hrtf: str = "kemar"  # or a .sofa path
+    hrtf_interpolation: str = "barycentric"  # or nearest
+    hrtf_taps: int = 0  # 0: 4 ms worth at the engine rate
+    occlusion: bool = True
+    early_reflections: bool = True
+    er_order: int = 1  # image-source order (1: 6 images per source, 2: 24)
+    late_reverb: bool = True
+    reverb: str = "convolution"  # convolution (synthesised binaural tails, exact per band) | fdn (cheaper)
+    rolloff: str = "log"  # log | linear | none
+    min_distance: float = 1.0
+    max_distance: float = 500.0
+    near_field_gain: float = 3.0  # 0..9 (Resonance: at most +19 dB)
+    occlusion_smoothing: float = 0.75
+    occlusion_tolerance: float = 0.02  # m a segment end moves before its rays are cast again
+    occlusion_rays_per_block: int = 16  # segments recast per block at most (all of them when the scene changes)
+    paths: bool = True  # sounds without line of sight also arrive around corners and through doorways
+    diffraction: str = "fresnel"  # bend loss of a path: fresnel (per band, from each bend's detour) | none
+    path_cell: float = 0.1  # m: the grid of the ear-height slice the paths are found on
+
+    def __post_init__(self):
+        if not (8000 <= self.sample_rate <= 192000):
+            raise ConfigError(f"sample rate must be within 8-192 kHz, got {self.sample_rate}")
+        if not (16 <= self.block <= 8192):
+            raise ConfigError(f"block size must be within 16-8192 frames, got {self.block}")
+        if self.output not in ("binaural", "stereo", "mono"):
+            raise ConfigError(f"output must be binaural, stereo or mono, got '{self.output}'")
+        if self.rolloff not in ("log", "linear", "none"):
+            raise ConfigError(f"rolloff must be log, linear or none, got '{self.rolloff}'")
+        if not (0 < self.min_distance < self.max_distance <= 5000):
+            raise ConfigError("need 0 < min_distance < max_distance <= 5000 m")
+        if self.hrtf_interpolation not in ("barycentric", "nearest"):
+            raise ConfigError("hrtf_interpolation must be barycentric or nearest")
+        if self.er_order not in (1, 2):
+            raise ConfigError("er_order must be 1 or 2")
+        if self.reverb not in ("fdn", "convolution"):
+            raise ConfigError("reverb must be fdn or convolution")
+        if not (0 <= self.occlusion_smoothing < 1) or not (0 <= self.near_field_gain <= 9):
+            raise ConfigError("occlusion_smoothing must be in [0, 1) and near_field_gain in [0, 9]")
+        if not (0 <= self.occlusion_tolerance <= 10) or not (1 <= self.occlusion_rays_per_block <= 1_000_000):
+            raise ConfigError("occlusion_tolerance must be in [0, 10] m and occlusion_rays_per_block >= 1")
+        if self.diffraction not in ("fresnel", "none") or not (0.02 <= self.path_cell <= 1.0):
+            raise ConfigError("diffraction must be fresnel or none and path_cell within 0.02..1 m")
+        if self.hrtf_taps and not (16 <= self.hrtf_taps <= 4096):
+            raise ConfigError("hrtf_taps must be within 16..4096")
