@@ -30,15 +30,15 @@ import numpy as np
 
 from sonicverse_core.errors import AssetError, ConfigError
 from sonicverse_core.tasks.retrieval import SPOKEN, TEMPLATES  # the task's vocabulary
+from sonicverse_core.world.person import PHRASES
 
 log = logging.getLogger(__name__)
 
 SAMPLE_RATE = 16_000
 N_MELS = 40
 CLASSES = tuple(SPOKEN) + ("other",)
-OTHER = ("follow me please", "this way", "come along", "i am over here", "keep up with me", "can you hear me",
-         "over here robot", "let us go", "stay close to me", "we are almost there", "turn here", "not far now",
-         "thank you", "hello robot", "wait for me", "bring it here", "put it down", "where are you")
+#: phrases that are not commands: the person's (the same tuple, so training and the tasks never drift apart), a few more
+OTHER = PHRASES + ("thank you", "hello robot", "wait for me", "bring it here", "put it down", "where are you")
 ACCENTS = ("en-us", "en-gb", "en-gb-scotland", "en-gb-x-gbclan", "en-gb-x-rp", "en-gb-x-gbcwmd", "en-029",
            "en-us-nyc")
 #: espeak-ng voice variants used for training (the person's variants, none / f2 / m3, are held out)
