@@ -11,7 +11,8 @@ IMPLEMENTATIONS = {
     "AudioGoal": _NAV, "AudioPointGoal": _NAV, "SemanticAudioNav": _NAV,
     "SpeakerFollowing": {"random": "agents.scripted:RandomAgent", "oracle": "agents.following:OracleFollower",
                          "scripted": "agents.following:ScriptedFollower"},
-    "VoiceRetrieval": {"random": "agents.scripted:RandomAgent", "oracle": "agents.retrieval:OracleRetriever"},
+    "VoiceRetrieval": {"random": "agents.scripted:RandomAgent", "oracle": "agents.retrieval:OracleRetriever",
+                       "scripted": "agents.retrieval:ScriptedRetriever"},
 }
 
 

@@ -10,7 +10,10 @@ registry (:mod:`sonicverse_core.tasks.registry`) lists them.
 Agents see observations through the Gymnasium interface. Oracles (and the paper's random baseline, which stops
 automatically at the goal) need privileged state: they read it through one documented channel,
 ``env.unwrapped.privileged()``, which returns the task's :meth:`Task.privileged` dict (for example the world, the
-goals, the person). Nothing else in an env is an agent's business.
+goals, the person). Two more channels exist for tasks that define them: ``env.unwrapped.semantic_map()`` (what a
+home robot that has mapped its home knows before the episode: the floor plan, the objects and their categories, its
+own start pose on that map; never where a person is) and ``env.unwrapped.report(**estimates)`` (an agent states
+an estimate the task scores, e.g. where it thinks the speaker is). Nothing else in an env is an agent's business.
 
 Actions: Box(-1, 1) of the two wheel velocities normalised to the wheel's top speed (and a stop signal for tasks
 with ``stop_action``). Out-of-range values are clipped (documented); NaN, infinities or a wrong shape raise
@@ -182,6 +185,54 @@ class Task:
         """State an oracle may read (documented per task); agents that learn or act from sensors must not."""
         return {"world": env.home.world}
 
+    def semantic_map(self, env) -> "SemanticMap":
+        """The map a robot may know before the episode (tasks that give one override this)."""
+        raise ConfigError(f"task {self.name} gives agents no semantic map")
+
+    def report(self, env, estimates: dict) -> None:
+        """An agent's estimate for the task to score (tasks that score some override this)."""
+        raise ConfigError(f"task {self.name} scores no estimates")
+
+
+@dataclass(frozen=True)
+class MapObject:
+    name: str
+    category: str
+    position: tuple  # (x, y, z) of its centre, m
+    lo: tuple  # (x, y, z) of its world-aligned bounding box
+    hi: tuple
+    movable: bool  # the robot can pick it up
+
+
+@dataclass(frozen=True)
+class SemanticMap:
+    """What a home robot knows of its home before an episode, in the home's (map) frame: ``grid`` (a
+    :class:`~sonicverse_core.geometry.navgrid.NavGrid` of the floor with doors, furniture and objects as they stood at
+    the episode's start; read-only), ``objects`` (every object's name, category, centre and bounds), ``start`` (the
+    robot's (x, y, yaw degrees) at the start: the ``pose`` observation is odometry from there). People are not on it."""
+
+    grid: object
+    objects: tuple
+    start: tuple
+
+    def to_map(self, pose_obs) -> tuple[np.ndarray, float]:
+        """The ``pose`` observation (odometry from the start: x, y, sin, cos) as (x, y) and yaw degrees on the map."""
+        x, y, s, c = (float(v) for v in pose_obs)
+        a = math.radians(self.start[2])
+        xy = np.array([self.start[0] + math.cos(a) * x - math.sin(a) * y,
+                       self.start[1] + math.sin(a) * x + math.cos(a) * y])
+        yaw = (self.start[2] + math.degrees(math.atan2(s, c)) + 180.0) % 360.0 - 180.0
+        return xy, yaw
+
+    @classmethod
+    def of(cls, world, start) -> "SemanticMap":
+        objs = []
+        for o in world.scene.objects:
+            b = o.world_bounds()
+            objs.append(MapObject(o.name, o.category, tuple(float(v) for v in o.position), tuple(map(float, b[0])),
+                                  tuple(map(float, b[1])), bool(o.movable)))
+        return cls(world.grid, tuple(objs), tuple(float(v) for v in start))
+
 
 class TaskEnv(gym.Env):
     """The one embodied environment: ``TaskEnv(task="AudioGoal", **config_fields_and_task_options)``.
@@ -296,6 +347,18 @@ class TaskEnv(gym.Env):
         if self.episode is None:
             raise ConfigError("call reset() before privileged()")
         return self.task.privileged(self)
+
+    def semantic_map(self) -> SemanticMap:
+        """The task's :class:`SemanticMap` of this episode's home (tasks that give one)."""
+        if self.episode is None:
+            raise ConfigError("call reset() before semantic_map()")
+        return self.task.semantic_map(self)
+
+    def report(self, **estimates) -> None:
+        """Give the task an estimate to score (tasks that score some: see the task's docstring)."""
+        if self.episode is None or self._done:
+            raise ConfigError("report() belongs to a running episode")
+        self.task.report(self, estimates)
 
     # --- sensors ----------------------------------------------------------------------------------------------
     def _camera(self):

@@ -42,18 +42,20 @@ def shortest_actions(shortest: float, max_speed: float, dt: float) -> int:
 
 
 def mean_ci95(values) -> dict:
-    """{'mean', 'ci95': [low, high] (Student t), 'n'} of continuous per-episode values."""
+    """{'mean', 'ci95': [low, high] (Student t), 'median', 'n'} of continuous per-episode values; NaN values (an
+    episode without that measure, e.g. an agent that reported no estimate) are left out and not counted in n."""
     x = np.asarray(list(values), float)
+    x = x[~np.isnan(x)]
     n = len(x)
     if n == 0:
-        return {"mean": None, "ci95": [None, None], "n": 0}
-    m = float(x.mean())
+        return {"mean": None, "ci95": [None, None], "median": None, "n": 0}
+    m, med = float(x.mean()), float(np.median(x))
     if n == 1:
-        return {"mean": m, "ci95": [None, None], "n": 1}
+        return {"mean": m, "ci95": [None, None], "median": med, "n": 1}
     from scipy import stats
 
     h = float(stats.t.ppf(0.975, n - 1) * x.std(ddof=1) / math.sqrt(n))
-    return {"mean": m, "ci95": [m - h, m + h], "n": n}
+    return {"mean": m, "ci95": [m - h, m + h], "median": med, "n": n}
 
 
 def rate_ci95(outcomes) -> dict:

@@ -25,6 +25,16 @@ category, ``success_reward`` on success.
 
 Privileged state (``env.unwrapped.privileged()``): ``world``, ``person`` (x, y), ``category``, ``text`` (the
 command), ``targets`` (names of the objects of the category).
+
+What the robot may know (``env.unwrapped.semantic_map()``, :class:`~sonicverse_core.tasks.base.SemanticMap`): the
+home's floor plan as it stands at the start, every object with its category and bounds, and its own start pose on
+that map; not the person, not the command.
+
+Estimates (``env.unwrapped.report(speaker=(x, y))``, map frame): where the agent believes the speaker stands. The
+first report is scored against the robot's pose at that moment: ``speaker_azimuth_error_deg`` (the angle at the
+robot between the estimate and the mouth), ``speaker_distance_error_m`` (the difference of their straight-line
+distances); NaN (left out of the means) when an agent reports nothing. ``same_room`` says whether the robot and the
+person were in the same room then (the issue's azimuth target is for the same room).
 """
 from __future__ import annotations
 
@@ -33,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sonicverse_core.errors import ActionError, ConfigError
-from sonicverse_core.tasks.base import Task
+from sonicverse_core.tasks.base import SemanticMap, Task
 from sonicverse_core.tasks.episodes import JsonRecord
 from sonicverse_core.world.person import SPEEDS, VOICES, PersonConfig, body_mesh, utterance
 
@@ -169,7 +179,24 @@ class VoiceRetrieval(Task):
         self.first_pick: str | None = None
         self.placed: str | None = None
         self.understood = False
+        self.map = SemanticMap.of(w, ep.start)
+        self.estimate: tuple | None = None  # (estimate xy, robot xy, room shared) at the first report
         return ep
+
+    def semantic_map(self, env) -> SemanticMap:
+        return self.map
+
+    def report(self, env, estimates: dict) -> None:
+        unknown = set(estimates) - {"speaker"}
+        if unknown:
+            raise ConfigError(f"voice retrieval scores only 'speaker', not {', '.join(sorted(unknown))}")
+        xy = np.asarray(estimates["speaker"], float)
+        if xy.shape != (2,) or not np.all(np.isfinite(xy)):
+            raise ConfigError(f"speaker must be a finite (x, y), got {estimates['speaker']!r}")
+        if self.estimate is None:
+            w = env.home.world
+            ra, rb = w.scene.room_at(w.pose[:2]), w.scene.room_at(self.person_xy)
+            self.estimate = (xy, w.pose[:2].copy(), ra is not None and ra is rb)
 
     def evaluate(self, env, a):
         c, w = self.cfg, env.home.world
@@ -220,9 +247,18 @@ class VoiceRetrieval(Task):
     def metrics(self, env, success: bool) -> dict:
         from sonicverse_core.tasks.metrics import spl
 
+        az = dist = float("nan")
+        same = float("nan")
+        if self.estimate is not None:
+            est, robot, shared = self.estimate
+            a, b = est - robot, self.person_xy - robot
+            az = abs((np.degrees(np.arctan2(a[1], a[0]) - np.arctan2(b[1], b[0])) + 180.0) % 360.0 - 180.0)
+            dist = abs(float(np.hypot(*a)) - float(np.hypot(*b)))
+            same = float(shared)
         return {"sr": float(success), "success": float(success),
                 "spl": spl(success, self.shortest, env.path_length),
-                "command_accuracy": float(self.understood), "time_s": env.steps * self.cfg.step_seconds,
+                "command_accuracy": float(self.understood), "speaker_azimuth_error_deg": float(az),
+                "speaker_distance_error_m": dist, "same_room": same, "time_s": env.steps * self.cfg.step_seconds,
                 "collisions": env.collisions, "steps": env.steps, "path_length": env.path_length,
                 "shortest_m": self.shortest}
 
