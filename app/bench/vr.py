@@ -16,12 +16,19 @@ import time
 import numpy as np
 
 
-def _session(scene: str, size, views=True, audio="none", msaa=False, device=None):
+def _session(scene: str, size, views=True, audio="none", msaa=False, device=None, task=None, realtime=False):
     from app.vr.headless import HeadlessBackend
     from app.vr.session import SessionConfig, VRSession
 
-    cfg = SessionConfig(scene=scene, views=views, audio=audio, audio_device=device, msaa=msaa, write_frames=0)
-    return VRSession(cfg, HeadlessBackend(width=size[0], height=size[1]))
+    robots = 1
+    if task is not None:
+        from app.tasks.in_the_loop import OrientationTrials
+
+        if isinstance(task, OrientationTrials):
+            views, robots = False, 0
+    cfg = SessionConfig(scene=scene, views=views, audio=audio, audio_device=device, msaa=msaa, write_frames=0,
+                        robots=robots)
+    return VRSession(cfg, HeadlessBackend(width=size[0], height=size[1], realtime=realtime), task=task)
 
 
 def _loop(scene, size, frames, **kw) -> tuple[dict, np.ndarray | None]:
@@ -160,7 +167,20 @@ def _gl_renderer() -> str:
         return f"unknown ({exc})"
 
 
-def _live_audio(scene: str, seconds: float) -> dict:
+def live_audio_task(task: str, seconds: float = 60.0, scene: str = "builtin:apartment", agent: str | None = None,
+                    seed: int = 0) -> dict:
+    """A human-robot task in the VR loop (headless backend, paced to the wall clock at 90 Hz, 512x512 stereo views
+    unless the task is audio only) with the live pipeline on a private JACK dummy server for ``seconds``: xruns and
+    callback timing while the task's agent (or participant) runs. The JACK dummy has no microphone: the robot hears
+    the scene and silence where the user's voice would be."""
+    from app.tasks.in_the_loop import make_frame_task
+
+    t = make_frame_task(task, agent, seed, trials=10_000)
+    return {"task": t.name, "agent": getattr(t, "agent_name", "simulated"),
+            **_live_audio(scene, seconds, task=t, realtime=True)}
+
+
+def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False) -> dict:
     """The loop flat out at 512x512 stereo with the live pipeline on a JACK dummy server: xruns, callbacks."""
     from app.audio_rt.jack import JackServer
 
@@ -170,7 +190,8 @@ def _live_audio(scene: str, seconds: float) -> dict:
     try:
         from app.audio_rt.loopback import PlatformProbe
 
-        with JackServer(name), _session(scene, (512, 512), audio="live", device="system") as s:
+        with JackServer(name), _session(scene, (512, 512), audio="live", device="system", task=task,
+                                        realtime=realtime) as s:
             s.frame()  # the loop is running (first poses handed over) and the JACK graph has settled: then count
             s.audio.engine.wait_settled()
             s.audio.engine.mark()
@@ -182,7 +203,8 @@ def _live_audio(scene: str, seconds: float) -> dict:
             tel = s.audio.telemetry()
             platform = probe.result()
             r = s.summary()
-        return {"seconds": seconds, "loop_fps": r["fps"], "xruns": tel["xruns"], "xrun_at_s": tel["xrun_at_s"],
+        extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}
+        return {**extra, "seconds": seconds, "loop_fps": r["fps"], "xruns": tel["xruns"], "xrun_at_s": tel["xrun_at_s"],
                 "callbacks": tel["callbacks"], "callback_ms": tel["callback_ms"],
                 "callback_errors": tel["callback_errors"], "pose_frames": tel["pose_frames"],
                 "robot_blocks": tel["robot_blocks"], "platform": platform}

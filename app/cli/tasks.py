@@ -80,6 +80,14 @@ def cmd_task_run(a) -> int:
     from sonicverse_core.tasks.registry import task_spec
 
     spec = task_spec(a.name)
+    if a.backend != "headless":  # the user is the person, in the VR app
+        from app.tasks.run import run_in_vr
+
+        res = run_in_vr(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, backend=a.backend, out=a.out,
+                        trials=a.trials or 10, mode=a.mode if a.mode != "mixed" else "turn")
+        print(json.dumps(res) if a.json else "\n".join(f"{k:>26}: {v['mean']}" for k, v in res.items()
+                                                       if isinstance(v, dict) and "mean" in v))
+        return 0
     kw = {}
     if a.homes is not None:
         kw["homes"] = a.homes
@@ -148,6 +156,9 @@ def add_task_commands(sub, bench_sub) -> None:
     g.add_argument("--learning-rate", type=A.number(0, 10), default=0.0,
                    help="simulated participant: learning rate per trial (default: %(default)s)")
     g.add_argument("--no-render", action="store_true", help="do not render the stimuli (the model needs no audio)")
+    tr.add_argument("--backend", default="headless", choices=("headless", "desktop", "openvr"),
+                    help="headless: the Gymnasium env with the simulated person (default); desktop / openvr: the VR "
+                         "app with you as the person, one session per episode")
     tr.add_argument("--json", action="store_true", help="print one JSON object")
     tr.set_defaults(func=cmd_task_run)
 

@@ -72,15 +72,29 @@ def cmd_vr(a) -> int:
         scene = a.scene or recording.meta.get("scene")
         seed = recording.meta.get("seed", seed)
         robots = recording.meta.get("robots", robots)
+    task = None
+    task_name, agent = a.task, a.agent
+    if recording is not None and task_name is None:
+        task_name, agent = recording.meta.get("task"), recording.meta.get("agent")
+    views = not a.audio_only
+    if task_name:
+        from app.tasks.in_the_loop import OrientationTrials, make_frame_task
+
+        task = make_frame_task(task_name, agent, seed, trials=a.trials, mode=a.mode)
+        if isinstance(task, OrientationTrials):  # audio only: nothing visual is loaded, no robot
+            views, robots = False, 0
     headless = backend_name == "headless"
-    frames = a.frames if a.frames is not None else (180 if headless and not a.replay else None)
+    frames = a.frames if a.frames is not None else \
+        ((180 if task is None else 90 * int(a.rate or 90)) if headless and not a.replay else None)
     out = a.out or ("out/vr" if headless else None)
-    cfg = SessionConfig(scene=scene or "builtin:apartment", views=not a.audio_only,
+    cfg = SessionConfig(scene=scene or "builtin:apartment", views=views,
                         audio=a.audio or ("offline" if headless else "live"), audio_device=a.audio_device,
                         robots=robots, msaa=a.msaa, cull_rooms=a.cull_rooms, seed=seed,
                         write_frames=a.write_frames if a.write_frames is not None else (10 if headless else 0))
     backend = make_backend(backend_name, a, recording)
-    with VRSession(cfg, backend) as s:
+    with VRSession(cfg, backend, task=task) as s:
+        if task is not None:
+            s.recording.meta.update(task=task.name, agent=getattr(task, "agent_name", None))
         if not a.json:
             why = " (no VR headset, no display)" if a.backend == "auto" and headless else ""
             print(f"sonicverse vr: {backend_name} backend{why}, {cfg.scene}, eyes {backend.width}x{backend.height} "
@@ -107,7 +121,13 @@ def cmd_vr(a) -> int:
 
 
 def cmd_bench_vr(a) -> int:
-    from app.bench.vr import bench_vr
+    from app.bench.vr import bench_vr, live_audio_task
+
+    if a.task:
+        if a.audio_seconds <= 0:
+            raise ConfigError("--task runs the live-audio part: give --audio-seconds > 0")
+        print(json.dumps(live_audio_task(a.task, a.audio_seconds, a.scene, a.agent, a.seed)))
+        return 0
 
     try:
         levels = [int(x) for x in a.culling_levels.split(",") if x.strip()]
@@ -152,6 +172,12 @@ def add_vr_commands(sub, bench_sub) -> None:
                    help="save every N-th stereo frame as PNG (headless default: 10; 0: none)")
     v.add_argument("--out", default=None, type=A.out_dir, help="output folder (headless default: out/vr)")
     v.add_argument("--seed", type=A.seed, default=0, help="seed of the robot's start and the scripted walk")
+    v.add_argument("--task", default=None, metavar="TASK",
+                   help="a human-robot task with the user as the person: speaker-following, voice-retrieval, "
+                        "orientation-training (headless: a simulated user; ends when the task does)")
+    v.add_argument("--agent", default=None, help="the robot's agent for --task (default: the task's first)")
+    v.add_argument("--trials", type=A.count(1, 10_000), default=10, help="orientation-training trials (default: 10)")
+    v.add_argument("--mode", default="turn", choices=("turn", "walk"), help="orientation-training trials' kind")
     v.add_argument("--json", action="store_true", help="print one JSON object with the frame statistics")
     v.set_defaults(func=cmd_vr)
 
@@ -165,5 +191,10 @@ def add_vr_commands(sub, bench_sub) -> None:
                    help="subdivision levels of the culling scene (each x4 triangles; default: %(default)s)")
     b.add_argument("--audio-seconds", type=A.number(0, 3600, unit="s"), default=20.0,
                    help="seconds of the live-audio run on a private JACK dummy server (0: skip)")
+    b.add_argument("--task", default=None, metavar="TASK",
+                   help="only the live-audio run, with this human-robot task in the loop (paced at 90 Hz; "
+                        "speaker-following, voice-retrieval, orientation-training)")
+    b.add_argument("--agent", default=None, help="the robot's agent for --task (default: the task's first)")
+    b.add_argument("--seed", type=A.seed, default=0, help="seed of the task (default: 0)")
     b.add_argument("--json", action="store_true", help="(always JSON)")
     b.set_defaults(func=cmd_bench_vr)

@@ -208,9 +208,10 @@ class VisualScene:
         return self.render_views(head_matrix(*head), eye_offsets(ipd))
 
     def render_camera(self, pose: np.ndarray, width: int = 128, height: int = 128,
-                      hfov_deg: float = 90.0) -> np.ndarray:
+                      hfov_deg: float = 90.0, depth: bool = False):
         """(H, W, 3) uint8 seen by a robot's camera (camera-frame pose); the avatar is visible. Drawn by the same
-        GL context as the eyes (pyrender binds a mesh to one context), at its own viewport size."""
+        GL context as the eyes (pyrender binds a mesh to one context), at its own viewport size. With ``depth``:
+        (rgb, depth (H, W) float32 m along the optical axis, 0 where nothing is hit)."""
         key = (width, height, hfov_deg)
         if self._robot_cam is None or self._robot_cam[0] != key:
             yfov = 2 * np.arctan(np.tan(np.radians(hfov_deg) / 2) * height / width)
@@ -221,9 +222,16 @@ class VisualScene:
         self._cull(pose)
         r = self.renderer
         r.viewport_width, r.viewport_height = width, height
+        inner = r._renderer
+        reader = inner.__dict__.get("_read_main_framebuffer")
+        if depth and reader is not None:  # the eyes skip the depth read-back; the robot's depth camera needs it
+            del inner._read_main_framebuffer
         try:
-            return r.render(self.scene, flags=self._flags)[0]
+            out = r.render(self.scene, flags=self._flags)
+            return (out[0], np.asarray(out[1], np.float32)) if depth else out[0]
         finally:
+            if depth and reader is not None:
+                inner._read_main_framebuffer = reader
             r.viewport_width, r.viewport_height = self.width, self.height
 
     def close(self) -> None:

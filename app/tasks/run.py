@@ -139,3 +139,71 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
         learning_curve(rows, png)
         res["csv"], res["learning_curve"] = str(p), str(png)
     return res
+
+
+def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str = "test", seed: int = 0,
+              backend: str = "desktop", out: str | Path | None = None, trials: int = 10, mode: str = "turn",
+              rate: float | None = None, size=None, max_seconds: float | None = None) -> dict:
+    """``task run --backend desktop|openvr``: the task in the VR app with the user as the person, one session per
+    episode (orientation training: one session of ``trials`` trials), each in a home of ``split`` and ending when
+    the task does (or the user closes the window / quits, or after ``max_seconds``: the task's own limit). Returns
+    the task's metric keys with 95% CIs over the episodes (trials), as :func:`run_task` does, and writes a CSV."""
+    from app.tasks.in_the_loop import OrientationTrials, make_frame_task
+    from app.vr.session import SessionConfig, VRSession
+    from sonicverse_core.tasks.episodes import homes
+    from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
+
+    spec = task_spec(task)
+    if spec.frame_task is None:
+        raise ConfigError(f"task '{spec.cli}' has no VR version")
+    scenes = homes(split)
+    rows: list[dict] = []
+    csv_path = Path(out) / f"{spec.cli}_{agent or spec.agents[0]}_{backend}_s{seed}.csv" if out else None
+    n = 1 if spec.kind == "trials" else episodes
+    for i in range(n):
+        s_i = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+        t = make_frame_task(spec.cli, agent, s_i, trials=trials, mode=mode)
+        audio_only = isinstance(t, OrientationTrials)
+        be = _vr_backend(backend, rate, size)
+        limit = max_seconds or (spec.max_steps * 0.1 if not audio_only else 60.0 * trials)
+        cfg = SessionConfig(scene=scenes[i % len(scenes)], views=not audio_only, robots=0 if audio_only else 1,
+                            audio="offline" if backend == "headless" else "live", seed=s_i)
+        with VRSession(cfg, be, task=t) as sess:
+            sess.run(frames=int(limit * be.target_hz))
+            summ = sess.summary()["task"]
+        if audio_only:
+            rows += summ["rows"]
+        else:
+            rows.append({"episode": i, "scene": cfg.scene, **{k: v for k, v in summ.items() if k != "name"}})
+        if csv_path:
+            _write_csv(csv_path, rows)
+    res = {"task": spec.cli, "agent": agent or spec.agents[0], "backend": backend, "episodes": n, "seed": seed}
+    for key in spec.metrics:
+        col = {"front_back_confusion_rate": "front_back_confusion"}.get(key, key)
+        vals = [r.get(col) for r in rows]
+        vals = [float("nan") if v is None else float(v) for v in vals]
+        if key in spec.rates:
+            ok = [v for v in vals if v == v]
+            res[key] = rate_ci95(ok)
+        else:
+            res[key] = mean_ci95(vals)
+    if audio_only:
+        res["trials"] = len(rows)
+    if csv_path:
+        res["csv"] = str(csv_path)
+    return res
+
+
+def _vr_backend(name: str, rate, size):
+    w, h = size or (512, 512)
+    if name == "openvr":
+        from app.vr.openvr_backend import OpenVRBackend
+
+        return OpenVRBackend(size=size)
+    if name == "desktop":
+        from app.vr.desktop import DesktopBackend
+
+        return DesktopBackend(w, h, target_hz=rate)
+    from app.vr.headless import HeadlessBackend
+
+    return HeadlessBackend(None, target_hz=rate or 30.0, width=w, height=h)

@@ -17,6 +17,7 @@ from app.audio_rt.config import AudioConfig, AudioScene, SourceSpec
 from assets_manifest import soundbank
 from app.audio_rt.poses import PoseInterpolator, PoseLayout, mouth
 from app.vr.transforms import head_pose
+from sonicverse_core.errors import ConfigError
 
 # which objects sound in the VR app, first choice first: the sound bank's categories, those that sound on their own
 # (a TV, running water) before the rest
@@ -77,17 +78,46 @@ class EarLog:
     def heard(self) -> np.ndarray:
         return np.concatenate(self.blocks, axis=1) if self.blocks else np.zeros((2, 0), np.float32)
 
+    def last(self, n: int) -> np.ndarray:
+        """The last ``n`` samples (2, n), zeros where nothing was heard yet; reads only the blocks it needs."""
+        out = np.zeros((2, n), np.float32)
+        k = n
+        for b in reversed(self.blocks):
+            if k <= 0:
+                break
+            m = min(k, b.shape[1])
+            out[:, k - m:k] = b[:, b.shape[1] - m:]
+            k -= m
+        return out
+
 
 def source_positions(scene, sources) -> list:
-    return [tuple(scene.object(name).sound_position()) for name, _ in sources]
+    """Where each (name, spec) source is: the named object's sound position, or for a source no object carries
+    (name None: a task's stimulus) its spec's position (tasks move it with :meth:`_Ears.move_source`)."""
+    return [tuple(spec.position) if name is None else tuple(scene.object(name).sound_position())
+            for name, spec in sources]
 
 
 class _Ears:
     ears: list
+    sources: list
 
     def heard(self, listener: int = 0) -> np.ndarray:
         """(2, n) float32: what listener 0 (the user) or a robot (1..) heard so far (the last 10 minutes at most)."""
         return self.ears[listener].heard()
+
+    def last(self, listener: int, n: int) -> np.ndarray:
+        """(2, n) float32: the last ``n`` samples listener ``listener`` heard (zeros before the start)."""
+        return self.ears[listener].last(n)
+
+    def move_source(self, i: int, position) -> None:
+        """Move source ``i`` that no object carries (a task's stimulus) to ``position`` (x, y, z)."""
+        from dataclasses import replace
+
+        name, spec = self.sources[i]
+        if name is not None:
+            raise ConfigError(f"source {i} sounds at object '{name}': move the object")
+        self.sources[i] = (None, replace(spec, position=tuple(float(v) for v in position)))
 
 
 class OfflineAudio(_Ears):

@@ -33,7 +33,7 @@ class WalkTrajectory:
     """The user walks the shortest path from ``start`` to ``goal`` at 1 m/s, looking around (+-25 deg at 0.3 Hz),
     and pulls the right trigger for a few frames the first time the right hand comes within reach of a door."""
 
-    def __init__(self, scene, grid, start, goal, rate: float, reach: float = 0.9):
+    def __init__(self, scene, grid, start, goal, rate: float, reach: float = 0.9, speed: float | None = None):
         path, length = grid.shortest_path(start, goal)
         if not math.isfinite(length) or len(path) < 2:
             path, length = np.array([start, start]), 0.0
@@ -44,9 +44,10 @@ class WalkTrajectory:
         self.rate, self.reach = rate, reach
         self.doors = [d.world_bounds(d.pose).mean(axis=0) for d in scene.doors]
         self.pressed_at: int | None = None
+        self.speed = WALK_SPEED if speed is None else float(speed)
 
     def __call__(self, k: int, t: float):
-        s = min(WALK_SPEED * t, self.length)
+        s = min(self.speed * t, self.length)
         i = int(np.clip(np.searchsorted(self.cum, s, side="right") - 1, 0, len(self.path) - 2))
         seg = self.cum[i + 1] - self.cum[i]
         a = 0.0 if seg <= 0 else (s - self.cum[i]) / seg

@@ -119,8 +119,12 @@ class VRSession:
                     return
 
     def default_trajectory(self, rate: float):
-        """A walk from the spawn point to a random point of another room (headless backend)."""
+        """What the user does in the headless backend: the task's simulated user when it has one, else a walk
+        from the spawn point to a random point of another room."""
         from app.vr.headless import WalkTrajectory
+
+        if hasattr(self.task, "headless_input"):
+            return self.task.headless_input(self, rate)
 
         others = [r for r in self.scene.rooms if r.type != "living room"]
         goal = self.grid.sample(self.rng, 1, room=others[int(self.rng.integers(len(others)))].name)[0] \
@@ -139,7 +143,8 @@ class VRSession:
             return None
         from app.vr.audio import LiveAudio, OfflineAudio, scene_sources
 
-        sources = scene_sources(self.scene)
+        sources = self.task.audio_sources(self.scene) if hasattr(self.task, "audio_sources") else \
+            scene_sources(self.scene)
         head = (self.spawn[0], self.spawn[1], self.scene.floor_z + 1.6, 0.0, 0.0)
         if cfg.audio == "live":
             return LiveAudio(self.scene, sources, self._robots(), head, device=cfg.audio_device,
@@ -197,7 +202,7 @@ class VRSession:
         if interval is not None and f.index >= WARMUP_FRAMES:  # frame 0 compiles shaders and casts first rays
             self.stats.add(interval, time.perf_counter() - t_in)
         self.frame_index += 1
-        return True
+        return not getattr(self.task, "done", False)  # a task that is over ends the run (its summary says how)
 
     def run(self, frames: int | None = None, out: str | Path | None = None) -> dict:
         """Run until the backend stops or ``frames`` frames; returns :meth:`summary`. With ``out``, the input
