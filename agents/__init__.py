@@ -10,7 +10,7 @@ _NAV = {"random": "agents.scripted:RandomAgent", "oracle": "agents.scripted:Orac
 IMPLEMENTATIONS = {
     "AudioGoal": _NAV, "AudioPointGoal": _NAV, "SemanticAudioNav": _NAV,
     "SpeakerFollowing": {"random": "agents.scripted:RandomAgent", "oracle": "agents.following:OracleFollower",
-                         "scripted": "agents.following:ScriptedFollower"},
+                         "scripted": "agents.following:MapFollower"},
     "VoiceRetrieval": {"random": "agents.scripted:RandomAgent", "oracle": "agents.retrieval:OracleRetriever",
                        "scripted": "agents.retrieval:ScriptedRetriever"},
 }

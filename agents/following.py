@@ -3,23 +3,13 @@
 * ``oracle`` (privileged: ``env.privileged()["person"]`` and ``["world"]``): drives the geodesic shortest path to
   the person and holds 1.5 m while they walk, stepping out of their way when their next 4 m of route pass within
   0.9 m of it (people walk back out of dead-end rooms); once they have stopped, closes to 0.7 m and stops.
-* ``scripted`` (the robot's own sensors: binaural audio, depth, odometry pose, bump): two beliefs over where the
-  person is, on a 0.1 m grid of the robot's odometry frame, both starting near the robot (the task starts the two
-  1.2-2.2 m apart). Every step they spread as far as a person walks (1.4 m/s, a Gaussian); every heard step
-  multiplies them by the likelihood of each place given the interaural cross-correlation (GCC-PHAT weighted towards
-  onsets: the precedence effect; in these reverberant homes a whole block's cross-correlation mostly points at
-  reflections), i.e. the delay each place would cause (its lateral angle, shrunk by the mouth's elevation above the
-  microphones). One bearing is ambiguous (front or back, any distance); as the robot turns and moves, bearings from
-  different poses intersect: the head-turn cue (Wallach) and triangulation in one rule. The camera adds what it sees:
-  a narrow thing at chest and head height standing in front of its surroundings (:func:`detect_people`), accepted
-  only where the audio-only belief may put the voice, is fused into the acting belief and followed directly (1.4 m,
-  closing to 0.7 m and stopping once it has stayed put for 3 s). Otherwise the robot drives towards the bearing of
-  the acting belief's mass beyond 1 m, at least 1.5 m or as far as the voice's level says (inverse square against
-  the level at the start; only the camera makes it stop: in a reverberant home the level says little about
-  distance); when that mass is spread it goes where the voice was last placed (memory through silences, 8 s) or
-  turns on the spot listening. Depth and bumps build an occupancy map; a planner (Dijkstra on it) finds the way round.
-  A person just lost from view (a door, a corner) is looked for 1 m beyond where they were last seen, along their
-  motion. ``mode`` says which of these it did last ("seen", "lost-sight", "heard", "memory", "unsure").
+* ``scripted`` (:class:`MapFollower`; the robot's own sensors and the task's semantic map: the floor plan and its
+  start pose, then odometry; never the person): a belief over where the person stands on the map's floor
+  (:class:`agents.retrieval.SpeakerBelief`: voice onsets heard from a place's own direction in line of sight, through
+  the doorway or round the corner otherwise; a person the camera sees standing on open floor of the map; the places
+  it sees empty), spread every step along the floor as far as a walker goes; it drives along the map to the person
+  it sees (1.5 m behind; 0.7 m and still once they have stood for 2.5 s) or, with nobody in view, to 0.8 m of the
+  belief's densest place, or turns on the spot listening when the belief is spread. ``mode`` says which it did.
 * ``random``: uniform wheel velocities (:class:`agents.scripted.RandomAgent`).
 """
 from __future__ import annotations
@@ -29,7 +19,7 @@ from collections import deque
 
 import numpy as np
 
-from agents.scripted import Agent, MapAgent, _pursue, _wheels
+from agents.scripted import Agent, _pursue, _wheels
 
 
 class OracleFollower(Agent):
@@ -131,201 +121,94 @@ def detect_people(depth: np.ndarray, fx: float, camera_height: float, band=(1.0,
     return out
 
 
-class ScriptedFollower(MapAgent):
-    """Follows the voice (and what the camera sees where the voice is) from the robot's own sensors; see the
-    module's docstring."""
+class MapFollower(Agent):
+    """Follows the voice on the home's map (``env.semantic_map()``: the floor plan and its own start pose, then
+    odometry; never the person). Where the person is: :class:`agents.retrieval.SpeakerBelief` (voice onsets heard
+    from a place's own direction in line of sight, through the doorway or round the corner otherwise; the camera's
+    person detector, which looks for what stands at chest height on open floor of the map, and the places it sees
+    empty), started 1-2.5 m from the robot and spread every step along the floor as far as a person walks. It drives
+    along the map to the person it sees, holding 1.5 m, 0.7 m and still once they have stood for 2.5 s; with nobody
+    in view, to the belief's densest place, or turns on the spot listening when the belief is spread."""
 
     name = "scripted"
-    ITD_MAX = 0.00066  # s: the KEMAR head's largest interaural delay
-    MOUTH_ABOVE_EARS = 1.03  # m: a standing person's mouth above the robot's microphones
-    SHARPNESS = 4.0  # likelihood exp(SHARPNESS * (normalised GCC - 1)) per heard step
-    WALK = 1.4  # m/s: the fastest a person walks (the belief's diffusion while the voice is heard or not)
-    FOLLOW = 1.4
-    CLOSE = 0.7
+    CELL = 0.2
+    SPREAD = 0.6  # of the belief moved to the neighbouring cells per 0.1 s step (a walker's 1.4 m/s on 0.2 m cells)
+    FOLLOW, CLOSE = 1.5, 0.7
+    HEARD = 0.8  # m: how close it goes to where it only hears the person (closer than when it sees them)
 
     def reset(self, env, obs, info):
         super().reset(env, obs, info)
-        self.sr = env.cfg.sample_rate
-        self.occ = np.zeros((self.SIZE, self.SIZE), np.int16)
+        from scipy.sparse import diags, identity
+
+        from agents.retrieval import SpeakerBelief, _Me
+
+        self.map = m = env.semantic_map()
+        self.me = _Me(m.grid)
+        self.ears = e = SpeakerBelief(m.grid, env.cfg.sample_rate, self.CELL)
         self._fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
-        c = (np.arange(self.SIZE) - self.SIZE // 2 + 0.5) * self.CELL
-        self.cx, self.cy = np.meshgrid(c, c, indexing="ij")  # cell centres, [ix, iy]
-        r = np.hypot(self.cx, self.cy)
-        # the prior: the person calls the robot from nearby (the task starts 1.2-2.2 m apart)
-        prior = np.where((r > 0.8) & (r < 3.0), 1.0, 1e-3)
-        # two beliefs: [0] from audio and vision (what the robot acts on), [1] from audio alone (what judges
-        # whether a thing the camera sees is the talker: vision must not confirm itself)
-        self.belief = np.stack([prior, prior]) / prior.sum()
-        self.noise = None
-        self.tail = np.zeros((2, 480))
-        self.heard = 0
-        self.levels: deque = deque(maxlen=12)
-        self.level0 = None
-        self.last_seen = None
-        self.memory, self.memory_t = None, -1e9
-        self.sightings: deque = deque(maxlen=int(5.0 / self.dt))
+        deg = np.asarray(e.graph.getnnz(axis=1), float)
+        a = (e.graph > 0).astype(float)
+        self.move = (diags(1.0 / np.maximum(deg, 1.0)) @ a).T.tocsr()  # column-stochastic: one cell on
+        self.stay = identity(len(e.xy), format="csr")
+        _, length = e.arrivals(np.array(m.start[:2]))
+        prior = np.exp(-((length - 1.7) / 0.6) ** 2) + 1e-6
+        e.belief[:] = prior / prior.sum()
+        self.path, self.k, self.goal = None, 1, None
+        self.sightings: deque = deque(maxlen=int(3.0 / self.dt))
         self.t = 0.0
-        self.path, self.k, self.plan_at = None, 0, 0
-        self.since_heard = 0.0
+        self.mode = "unsure"
 
-    # --- the belief -------------------------------------------------------------------------------------------
-    def _predict(self):
-        from scipy.ndimage import gaussian_filter
+    def _spread(self) -> None:
+        e = self.ears
+        for i in range(2):
+            e.belief[i] = (1 - self.SPREAD) * e.belief[i] + self.SPREAD * (self.move @ e.belief[i])
+        e._normalise()
 
-        sigma = self.WALK * self.dt / self.CELL
-        self.belief = gaussian_filter(self.belief, (0, sigma, sigma), mode="constant", truncate=3.0)
-        self.belief[:, self.occ >= 3] *= 0.2  # people do not stand inside what the camera saw as solid
-        self.belief += 1e-9
-        self.belief /= self.belief.sum(axis=(1, 2), keepdims=True)
-
-    def _update(self, cc: np.ndarray, weight: float, p, yaw: float):
-        lag = (len(cc) - 1) // 2
-        ccn = (cc - cc.min()) / max(float(np.ptp(cc)), 1e-12)
-        dx, dy = self.cx - p[0], self.cy - p[1]
-        d = np.hypot(dx, dy) + 1e-6
-        az = np.arctan2(dy, dx) - math.radians(yaw)
-        cos_el = d / np.hypot(d, self.MOUTH_ABOVE_EARS)
-        expected = self.ITD_MAX * np.sin(az) * cos_el * self.sr + lag  # fractional index into cc
-        lik = np.interp(expected.ravel(), np.arange(len(cc)), ccn).reshape(expected.shape)
-        self.belief *= np.exp(self.SHARPNESS * min(weight, 2.0) * (lik - 1.0))
-        self.belief[:, d < 0.45] *= 0.5  # nobody stands on the robot
-        self.belief /= self.belief.sum(axis=(1, 2), keepdims=True)
-
-    # --- acting -----------------------------------------------------------------------------------------------
     def act(self, obs, info):
-        from agents.scripted import map_depth, onset_gcc_phat
+        from agents.retrieval import OracleRetriever
 
         self.t += self.dt
-        p, yaw = self._pose(obs)
+        p, yaw = self.map.to_map(obs["pose"])
+        self.me.pose[:] = (p[0], p[1], yaw)
+        self.me.bumped = obs.get("bump") is not None and obs["bump"][0] > 0
+        self._spread()
+        self.ears.hear(obs["audio"], p, yaw)
         if "depth" in obs:
-            map_depth(self.occ, obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height, self.CELL)
-        self.bumped = obs.get("bump") is not None and obs["bump"][0] > 0
-        if self.bumped:  # something the camera missed is in front: put it on the map
-            for da in (-30.0, 0.0, 30.0):
-                a = math.radians(yaw + da)
-                q = p + (self.robot.radius + 0.08) * np.array([math.cos(a), math.sin(a)])
-                c = self._cell(q)
-                if np.all((c >= 0) & (c < self.SIZE)):
-                    self.occ[c[0], c[1]] += 3
-            self.path = None
-        audio = obs["audio"]
-        cc, weight = onset_gcc_phat(audio, self.tail, self.sr, self.ITD_MAX)
-        self.tail = audio[:, -self.tail.shape[1]:].astype(np.float64)
-        energy = float(np.mean(audio.astype(np.float64) ** 2))
-        self.noise = energy if self.noise is None else min(self.noise * 1.02 + 1e-12, max(energy, 1e-12))
-        audible = energy > max(1e-8, 30.0 * self.noise)
-        self._predict()
-        if audible and weight > 0:
-            self._update(cc, weight, p, yaw)
-            self.heard += 1
-            self.since_heard = 0.0
-        else:
-            self.since_heard += self.dt
-        seen = self._see(obs, p, yaw) if "depth" in obs else None
-        if seen is not None:
+            seen = self.ears.see(obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height)
+            if seen is not None:
+                self.sightings.append((self.t, seen))
+        recent = [q for t, q in self.sightings if self.t - t <= 1.0]
+        if recent:
             self.mode = "seen"
-            self.sightings.append((self.t, seen))
-            return self._follow_seen(seen, p, yaw)
-        lost = self._where_lost()
-        if lost is not None and np.linalg.norm(lost - p) > 0.4:
-            self.mode = "lost-sight"  # just lost from view (a door, a corner): go where they were heading
-            return self._go(p, yaw, lost)
-        if audible:
-            self.levels.append(energy)
-            if self.level0 is None and len(self.levels) >= 5:
-                self.level0 = float(np.median(self.levels))
-        bearing, conc = self._bearing(p)
-        dist = 2.0  # how far: the voice's level against the level heard at the start (1.2-2.2 m), inverse square
-        if self.level0 is not None and self.levels:
-            lvl = float(np.median(list(self.levels)[-6:]))
-            dist = float(np.clip(1.7 * math.sqrt(self.level0 / max(lvl, 1e-12)), 0.5, 6.0))
-        if self.heard >= 3 and conc >= 0.25:
-            self.memory = p + dist * np.array([math.cos(math.radians(bearing)), math.sin(math.radians(bearing))])
-            self.memory_t = self.t
-        elif self.memory is not None and self.t - self.memory_t < 8.0 and np.linalg.norm(self.memory - p) > 0.5:
-            self.mode = "memory"  # unsure now: go where the voice was last placed
-            return self._go(p, yaw, self.memory)
+            q = recent[-1]
+            lasting = [q2 for t, q2 in self.sightings if self.t - t <= 2.5]
+            still = self.sightings[0][0] <= self.t - 2.4 and np.ptp(np.array(lasting), axis=0).max() < 0.35
+            want = self.CLOSE if still else self.FOLLOW
         else:
-            self.mode = "unsure"  # turn on the spot, listening (turning tells front from back)
-            return self._out(_wheels(0.0, math.radians(90.0), self.robot))
-        self.mode = "heard"  # the level says little about distance in a reverberant home: only the camera stops it
-        err = (bearing - yaw + 180.0) % 360.0 - 180.0
-        if abs(err) > 60.0:
-            return self._out(_wheels(0.0, math.copysign(math.radians(90.0), err), self.robot))
-        goal = p + max(dist, 1.5) * np.array([math.cos(math.radians(bearing)), math.sin(math.radians(bearing))])
-        return self._go(p, yaw, goal)
-
-    def _go(self, p, yaw, goal):
-        self.plan_at -= 1
-        if self.path is None or self.plan_at <= 0 or self.bumped:
-            self._plan_to(p, goal)
-            self.plan_at = 4
-        while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
-            self.k += 1
-        return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt))
-
-    def _see(self, obs, p, yaw) -> np.ndarray | None:
-        """A person the camera sees where the voice is (where the audio-only belief holds at least 30% of its
-        largest mass within ~0.7 m; 10% within 1 m of the last sighting); fused into the acting belief; their
-        position or None."""
-        people = detect_people(obs["depth"][..., 0], self._fx, self.robot.camera_height)
-        if not people:
-            return None
-        from scipy.ndimage import uniform_filter
-
-        audio = uniform_filter(self.belief[1], size=15, mode="constant")  # audio-only mass within ~0.7 m
-        top = float(audio.max())
-        best, score = None, -1.0
-        for ang, dist in people:
-            b = yaw + ang
-            pos = p + (dist + 0.15) * np.array([math.cos(math.radians(b)), math.sin(math.radians(b))])  # body centre
-            c = np.clip(self._cell(pos), 0, self.SIZE - 1)
-            support = float(audio[c[0], c[1]]) / max(top, 1e-30)
-            near_last = self.last_seen is not None and np.linalg.norm(pos - self.last_seen[0]) < 1.0 \
-                and self.t - self.last_seen[1] < 2.0 and support >= 0.1
-            if (support >= 0.3 or near_last) and support > score:
-                best, score = pos, support
-        if best is None:
-            return None
-        g = np.exp(-((self.cx - best[0]) ** 2 + (self.cy - best[1]) ** 2) / (2 * 0.3 ** 2))
-        self.belief[0] *= 0.05 + g
-        self.belief[0] /= self.belief[0].sum()
-        self.last_seen = (best, self.t)
-        return best
-
-    def _where_lost(self) -> np.ndarray | None:
-        """Where a person seen in the last 4 s went: the last sighting, 1 m further along their recent motion."""
-        if not self.sightings or self.t - self.sightings[-1][0] > 4.0:
-            return None
-        t1, q1 = self.sightings[-1]
-        old = [q for t, q in self.sightings if t1 - t >= 0.8]
-        if not old:
-            return q1
-        v = q1 - old[-1]
-        n = float(np.hypot(*v))
-        return q1 + (v / n if n > 0.2 else 0.0)
-
-    def _follow_seen(self, person, p, yaw):
-        recent = [q for t, q in self.sightings if self.t - t <= 3.0]
-        still = len(recent) >= int(1.5 / self.dt) and np.ptp(np.array(recent), axis=0).max() < 0.35
-        want = self.CLOSE if still else self.FOLLOW
-        to = person - p
-        dist = float(np.hypot(*to))
-        err = (math.degrees(math.atan2(to[1], to[0])) - yaw + 180.0) % 360.0 - 180.0
-        if dist <= want:
-            if abs(err) < 20.0 or (still and dist <= self.CLOSE):
+            q, mass = self.ears.best(0)
+            if mass < 0.05:
+                self.mode = "unsure"  # turn on the spot, listening and looking
+                return self._out(_wheels(0.0, math.radians(90.0), self.robot))
+            self.mode, want = "heard", self.HEARD
+        d = self._distance(p, q)
+        if d <= want:
+            v = q - p
+            err = (math.degrees(math.atan2(v[1], v[0])) - yaw + 180.0) % 360.0 - 180.0
+            if self.mode == "seen" and want == self.CLOSE or abs(err) < 20.0:
                 return self._out([0.0, 0.0])
             return self._out(_wheels(0.0, math.copysign(min(math.radians(90.0), abs(math.radians(err)) / self.dt),
                                                         err), self.robot))
-        return self._go(p, yaw, p + to * (dist - want) / dist)
+        goal = q
+        g = self.map.grid
+        if not g.is_navigable(np.array([goal]))[0]:
+            c = self.ears.xy
+            goal = c[int(np.argmin(np.hypot(*(c - goal).T)))]
+        if self.goal is not None and np.hypot(*(self.goal - goal)) < 0.3:
+            goal = self.goal  # no re-planning for small moves
+        return self._out(OracleRetriever._follow(self, self.me, goal, slow=0.3))
 
-    def _bearing(self, p, which: int = 0) -> tuple[float, float]:
-        """(the world bearing of the belief's mass beyond 1 m, degrees; its concentration, the mean resultant
-        length of that mass's bearings, 0-1)."""
-        dx, dy = self.cx - p[0], self.cy - p[1]
-        far = dx * dx + dy * dy > 1.0
-        w = self.belief[which] * far
-        ang = np.arctan2(dy, dx)
-        c, s = float((w * np.cos(ang)).sum()), float((w * np.sin(ang)).sum())
-        tot = float(w.sum()) + 1e-12
-        return math.degrees(math.atan2(s, c)), math.hypot(c, s) / tot
+    def _distance(self, p, q) -> float:
+        """Along the floor (the belief's cells), from ``p`` to ``q``."""
+        _, length = self.ears.arrivals(p)
+        i = int(np.argmin(np.sum((self.ears.xy - q) ** 2, axis=1)))
+        return float(length[i])

@@ -187,6 +187,15 @@ def test_speaker_following_oracle_keeps_close_and_catches():
     assert d[-1] <= 1.0  # caught: within 1 m and stopped
 
 
+def test_speaker_following_scripted_follows_by_ear_and_eye_on_the_map():
+    """The map follower keeps the walking person in the band and catches them; without its camera (audio and
+    odometry only) it does worse on the same episode: what it sees is part of how it follows."""
+    m, env = _episode("scripted", 2)
+    assert m["catch_success"] == 1.0 and m["time_in_band"] >= 0.6 and m["collisions"] <= 20
+    blind, _ = _episode("scripted", 2, sensors=("audio", "pose"))
+    assert blind["time_in_band"] < m["time_in_band"] - 0.2
+
+
 def test_speaker_following_episode_definition():
     from sonicverse_core.tasks.following import FollowEpisode
 

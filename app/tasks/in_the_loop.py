@@ -198,6 +198,9 @@ class FollowMe(RobotInTheLoop):
     VOICE = "follow me please. this way. i am over here. come along"
 
     def setup(self, session) -> None:
+        from sonicverse_core.tasks.base import SemanticMap
+
+        self.map = SemanticMap.of(session.world, tuple(session.world.pose))
         self.person = _UserPerson()
         self.dist: list[float] = []
         self.recent: list[np.ndarray] = []
@@ -220,6 +223,9 @@ class FollowMe(RobotInTheLoop):
 
     def advance(self, session, f) -> None:
         self.person.pos = self.user.copy()
+
+    def semantic_map(self, session):
+        return self.map
 
     def privileged(self, session) -> dict:
         d = self.dist[-1] if self.dist else float(np.hypot(*(session.world.pose[:2] - self.person.pos)))

@@ -21,6 +21,9 @@ Reward per step: +0.1 in the band, -0.02 per metre beyond it (at most 5 m), -``c
 
 Privileged state (``env.unwrapped.privileged()``): ``world``, ``person`` (the :class:`~sonicverse_core.world.person.
 Person`: position, yaw, route, ``finished``, ``talking()``), ``distance`` (geodesic robot-person, m).
+
+What the robot may know (``env.unwrapped.semantic_map()``): the home's floor plan at the start, its objects, its own
+start pose (then odometry); never the person (as in voice retrieval).
 """
 from __future__ import annotations
 
@@ -29,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sonicverse_core.errors import ConfigError
-from sonicverse_core.tasks.base import Task
+from sonicverse_core.tasks.base import SemanticMap, Task
 from sonicverse_core.tasks.episodes import JsonRecord
 from sonicverse_core.world.person import Person, PersonConfig, body_mesh, polyline_points, speech_track
 
@@ -137,7 +140,11 @@ class SpeakerFollowing(Task):
         self._field_key = None
         self.caught = False
         self.dist = self._distance(env)
+        self.map = SemanticMap.of(w, ep.start)
         return ep
+
+    def semantic_map(self, env) -> SemanticMap:
+        return self.map
 
     # --- per step ---------------------------------------------------------------------------------------------
     def _distance(self, env) -> float:
