@@ -87,40 +87,6 @@ class OracleFollower(Agent):
         return cand[int(np.argmin(np.linalg.norm(cand - p, axis=1)))]
 
 
-def detect_people(depth: np.ndarray, fx: float, camera_height: float, band=(1.0, 1.65), jump: float = 0.4,
-                  width=(0.2, 0.75)) -> list[tuple[float, float]]:
-    """People in a depth image: narrow things at chest and head height (``band``, m above the floor) that stand
-    ``jump`` m or more in front of what is beside them on both sides, ``width`` m wide. Returns [(bearing degrees,
-    left positive, distance m)]. Walls, tables and sofas fail the test (too wide, or too low); a door's edge or a
-    shelf seen end-on can pass it, which is why the follower gates detections by the voice's direction."""
-    H, W = depth.shape
-    v = (np.arange(H)[:, None] - H / 2 + 0.5) / fx
-    h = camera_height - v * depth
-    inband = (depth > 0.1) & (h >= band[0]) & (h <= band[1])
-    col = np.where(inband, depth, np.inf).min(axis=0)  # nearest thing at that height, per column
-    valid = np.isfinite(col)
-    out = []
-    u = 0
-    while u < W:
-        if not valid[u]:
-            u += 1
-            continue
-        a = u
-        while u + 1 < W and valid[u + 1] and abs(col[u + 1] - col[u]) < 0.15:
-            u += 1
-        b = u
-        z = float(np.median(col[a:b + 1]))
-        left = col[a - 1] if a > 0 else np.inf
-        right = col[b + 1] if b + 1 < W else np.inf
-        metres = (b - a + 1) * z / fx
-        if a > 0 and b + 1 < W and left - z >= jump and right - z >= jump and width[0] <= metres <= width[1]:
-            uc = (a + b + 1) / 2
-            ang = math.degrees(math.atan(-(uc - W / 2) / fx))
-            out.append((ang, z / math.cos(math.radians(ang))))
-        u = b + 1
-    return out
-
-
 class MapFollower(Agent):
     """Follows the voice on the home's map (``env.semantic_map()``: the floor plan and its own start pose, then
     odometry; never the person). Where the person is: :class:`agents.retrieval.SpeakerBelief` (voice onsets heard

@@ -319,9 +319,10 @@ def test_task_run_command(tmp_path, capsys):
 
 
 def test_scripted_followers_senses():
-    """The two senses the scripted follower relies on: onset-weighted GCC-PHAT finds the leading ear in a
-    reverberant-like signal, and the depth detector finds a person standing in front of the camera."""
-    from agents.following import detect_people
+    """The two senses the scripted agents rely on: onset-weighted GCC-PHAT finds the leading ear in a
+    reverberant-like signal, and the map-based detector finds the person standing in front of the camera (what
+    stands at chest height on open floor of the map) and clears the floor it sees empty."""
+    from agents.retrieval import SpeakerBelief
     from agents.scripted import onset_gcc_phat
 
     sr, rng = 16000, np.random.default_rng(0)
@@ -339,10 +340,16 @@ def test_scripted_followers_senses():
     w.pose = np.array([*w.pose[:2], math.degrees(math.atan2(d[1], d[0])) + 10.0])  # the person 10 deg to the right
     depth = env._camera().render(*w.camera)["depth"]
     fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
-    found = detect_people(depth, fx, w.robot.camera_height)
-    dist = float(np.hypot(*d))
-    assert any(abs(a + 10.0) < 4.0 and abs(r - (dist - 0.8 * p.cfg.radius)) < 0.25 for a, r in found), found
     env.close()
+    b = SpeakerBelief(env.task.map.grid, 16000)
+    behind = b.xy[int(np.argmax(np.hypot(*(b.xy - p.pos).T)))]  # the farthest place: out of view
+    before = b.mass(0, p.pos, 0.25), b.mass(0, behind, 0.25)
+    seen = b.see(depth, w.pose[:2], w.pose[2], fx, w.robot.camera_height)
+    assert seen is not None and np.hypot(*(seen - p.pos)) < 0.3, (seen, p.pos)
+    # one look moves belief towards where the camera saw the person (repeated looks compound it)
+    assert b.mass(0, p.pos, 0.25) / before[0] > 1.4 * b.mass(0, behind, 0.25) / before[1]
+    ahead = w.pose[:2] + 0.5 * (p.pos - w.pose[:2])  # halfway to them, in view and empty
+    assert b.mass(0, ahead, 0.2) < 0.5 * b.mass(1, ahead, 0.2)  # seen empty (the audio-only belief is not)
 
 
 def test_hrtf_decoding_filters_are_fitted_once_per_set():
