@@ -421,12 +421,14 @@ class ScriptedRetriever(OracleRetriever):
         self.reported = True
 
     def _start_fetch(self) -> None:
+        from sonicverse_core.tasks.retrieval import approach_cells
+
         g, p = self.grid, self.me.pose[:2]
         f = g.distance_field(p)
         best = (np.inf, None, None)
         for o in self.map.objects:
             if o.movable and o.category == self.category:
-                q = _approach(g, np.array(o.lo[:2]), np.array(o.hi[:2]), self.robot.radius + REACH)
+                q = approach_cells(g, o.lo, o.hi, self.robot.radius + REACH)
                 if len(q):
                     d = g.geodesic_from_field(f, q)
                     i = int(np.argmin(d))
@@ -491,13 +493,3 @@ class ScriptedRetriever(OracleRetriever):
             q = self.ears.xy
             to = q[int(np.argmin(np.hypot(*(q - to).T)))]
         return self._out(self._follow(self.me, to, slow=0.3))
-
-
-def _approach(g, lo, hi, r) -> np.ndarray:
-    """Navigable cell centres of grid ``g`` within ``r`` of the box ``lo``-``hi`` (x, y)."""
-    rc0, rc1 = g.cell_of(lo - r)[0], g.cell_of(hi + r)[0]
-    rr, cc = np.mgrid[rc0[0]:rc1[0] + 1, rc0[1]:rc1[1] + 1]
-    xy = g.center_of(np.c_[rr.ravel(), cc.ravel()])
-    gap = np.hypot(*np.maximum(np.maximum(lo - xy, xy - hi), 0.0).T)
-    xy = xy[gap <= r]
-    return xy[g.is_navigable(xy)] if len(xy) else xy

@@ -86,8 +86,12 @@ def approach_points(w, name: str, reach: float = 0.45) -> np.ndarray:
     """(k, 2) navigable cell centres from which the robot can pick up object ``name`` (its edge within ``reach``
     of the object's footprint)."""
     lo, hi = w.scene.object(name).world_bounds()[:, :2]
-    r = w.robot.radius + reach
-    g = w.grid
+    return approach_cells(w.grid, lo, hi, w.robot.radius + reach)
+
+
+def approach_cells(g, lo, hi, r: float) -> np.ndarray:
+    """(k, 2) navigable cell centres of grid ``g`` within ``r`` m of the box ``lo``-``hi`` (x, y)."""
+    lo, hi = np.asarray(lo, float)[:2], np.asarray(hi, float)[:2]
     rc0, rc1 = g.cell_of(lo - r)[0], g.cell_of(hi + r)[0]
     rr, cc = np.mgrid[rc0[0]:rc1[0] + 1, rc0[1]:rc1[1] + 1]
     xy = g.center_of(np.c_[rr.ravel(), cc.ravel()])
