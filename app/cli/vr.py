@@ -21,16 +21,13 @@ def headset_present() -> bool:
         import openvr
     except ImportError:
         return False
-    saved = os.dup(2)
+    from app.vr.openvr_backend import runtime_chatter
+
     try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
+        with runtime_chatter([]):
             return bool(openvr.isHmdPresent())
     except Exception:  # noqa: BLE001 - no runtime library: no headset
         return False
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
 
 
 def choose_backend(name: str) -> str:

@@ -8,6 +8,10 @@ rate and the recommended render size.
 """
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+
 import time
 
 import numpy as np
@@ -33,6 +37,24 @@ def why_not(exc) -> str:
     return f"OpenVR did not start: {why}; {HOW}"
 
 
+@contextlib.contextmanager
+def runtime_chatter(keep: list):
+    """Hold what OpenVR's client library prints straight to file descriptor 2 (its complaint about a missing
+    runtime, before our one-line error); the text is appended to ``keep`` for the caller to show when it wants."""
+    import tempfile
+
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            keep.append(tmp.read().decode(errors="replace"))
+
+
 class OpenVRBackend:
     name = "openvr"
 
@@ -43,12 +65,16 @@ class OpenVRBackend:
             raise DependencyError(f"the OpenVR backend needs pyopenvr (pip install -r requirements.txt): {exc}") \
                 from None
         self.vr = openvr
+        said: list[str] = []
         try:
-            self.system = openvr.init(openvr.VRApplication_Scene)
+            with runtime_chatter(said):
+                self.system = openvr.init(openvr.VRApplication_Scene)
         except openvr.error_code.InitError as exc:
             raise DeviceError(why_not(exc)) from None
         except OSError as exc:  # the runtime's client library failed to load
             raise DeviceError(f"OpenVR did not start: {exc}; {HOW}") from None
+        if said and said[0].strip():  # it started: what the runtime said is worth showing
+            sys.stderr.write(said[0])
         self.compositor = openvr.VRCompositor()
         if size is None:
             size = self.system.getRecommendedRenderTargetSize()
