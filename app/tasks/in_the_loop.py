@@ -133,9 +133,15 @@ class RobotInTheLoop(FrameTask):
         obs = {}
         if session.audio is not None:
             sr = session.cfg.sample_rate
-            x = session.audio.last(1, int(round(STEP * sr)))
-            obs["audio"] = np.clip(resample_poly(x, ENV_RATE, sr, axis=1), -1, 1).astype(np.float32) \
-                if sr != ENV_RATE else x
+            n = int(round(STEP * ENV_RATE))
+            if sr == ENV_RATE:
+                obs["audio"] = session.audio.last(1, n)
+            else:  # resampled with 50 ms of context before and the last 2 ms held back: a block resampled on its own
+                # has filter edges, which the agents' onset detectors would take for onsets at every block boundary
+                x = session.audio.last(1, int(round((STEP + 0.052) * sr)))
+                y = resample_poly(x, ENV_RATE, sr, axis=1)
+                hold = int(round(0.002 * ENV_RATE))
+                obs["audio"] = np.clip(y[:, -(n + hold):-hold], -1, 1).astype(np.float32)
         else:
             obs["audio"] = np.zeros((2, int(STEP * ENV_RATE)), np.float32)
         if session.views is not None:
@@ -250,8 +256,7 @@ class FetchForMe(RobotInTheLoop):
     the robot picks something up, then "over here" every 3 s; with live audio the user says it (``category`` in
     the summary is then what the agent understood). Metrics: ``sr``, ``command_accuracy`` (the first object picked
     up is of the asked category), ``speaker_azimuth_error_deg`` and ``speaker_distance_error_m`` (the agent's first
-    report, as in the env), ``time_s``, ``collisions``, ``spl`` over the route (start -> the object -> the user where
-    they stand at the end)."""
+    report, as in the env, with ``same_room``), ``time_s``, ``collisions``, ``path_length_m``."""
 
     spec_name = "VoiceRetrieval"
     n_actions = 3
@@ -312,7 +317,9 @@ class FetchForMe(RobotInTheLoop):
         if set(estimates) != {"speaker"} or xy.shape != (2,) or not np.all(np.isfinite(xy)):
             raise ConfigError("report(speaker=(x, y)) with a finite position")
         if self.estimate is None:
-            self.estimate = (xy, session.world.pose[:2].copy(), self.user.copy())
+            w = session.world
+            ra, rb = w.scene.room_at(w.pose[:2]), w.scene.room_at(self.user)
+            self.estimate = (xy, w.pose[:2].copy(), self.user.copy(), ra is not None and ra is rb)
 
     def after_act(self, session, f, a) -> None:
         from sonicverse_core.errors import ActionError
@@ -343,15 +350,16 @@ class FetchForMe(RobotInTheLoop):
         self.done = True
 
     def summary(self) -> dict:
-        az = dist = None
+        az = dist = same = None
         if self.estimate is not None:
-            est, robot, user = self.estimate
+            est, robot, user, same = self.estimate
             a, b = est - robot, user - robot
             az = abs((math.degrees(math.atan2(a[1], a[0]) - math.atan2(b[1], b[0])) + 180.0) % 360.0 - 180.0)
             dist = abs(float(np.hypot(*a) - np.hypot(*b)))
         return {"agent": self.agent_name, "category": self.category, "text": None if self.live else self.text,
                 "sr": float(self.success), "command_accuracy": float(self.understood), "first_pick": self.first_pick,
                 "placed": self.placed, "speaker_azimuth_error_deg": az, "speaker_distance_error_m": dist,
+                "same_room": same,
                 "time_s": self.steps * STEP, "collisions": self.collisions, "path_length_m": self.path_length}
 
 
