@@ -21,7 +21,7 @@ from collections import deque
 
 import numpy as np
 
-from agents.scripted import Agent, _pursue, _wheels
+from agents.scripted import Agent, MapDriver, _pursue, _wheels
 
 
 class OracleFollower(Agent):
@@ -89,7 +89,7 @@ class OracleFollower(Agent):
         return cand[int(np.argmin(np.linalg.norm(cand - p, axis=1)))]
 
 
-class MapFollower(Agent):
+class MapFollower(MapDriver):
     """Follows the voice on the home's map (``env.semantic_map()``: the floor plan and its own start pose, then
     odometry; never the person). Where the person is: :class:`agents.retrieval.SpeakerBelief` (voice onsets heard
     from a place's own direction in line of sight, through the doorway or round the corner otherwise; the camera's
@@ -123,7 +123,6 @@ class MapFollower(Agent):
         _, length = e.arrivals(np.array(m.start[:2]))
         prior = np.exp(-((length - 1.7) / 0.6) ** 2) + 1e-6
         e.belief[:] = prior / prior.sum()
-        self.path, self.k, self.goal = None, 1, None
         self.sightings: deque = deque(maxlen=int(3.0 / self.dt))
         self.t = 0.0
         self.mode = "unsure"
@@ -135,8 +134,6 @@ class MapFollower(Agent):
         e._normalise()
 
     def act(self, obs, info):
-        from agents.retrieval import OracleRetriever
-
         self.t += self.dt
         p, yaw = self.map.to_map(obs["pose"])
         self.me.pose[:] = (p[0], p[1], yaw)
@@ -174,14 +171,10 @@ class MapFollower(Agent):
                 return self._out([0.0, 0.0])
             return self._out(_wheels(0.0, math.copysign(min(math.radians(90.0), abs(math.radians(err)) / self.dt),
                                                         err), self.robot))
-        goal = q
-        g = self.map.grid
-        if not g.is_navigable(np.array([goal]))[0]:
-            c = self.ears.xy
-            goal = c[int(np.argmin(np.hypot(*(c - goal).T)))]
+        goal = self.ears.snap(q)
         if self.goal is not None and np.hypot(*(self.goal - goal)) < 0.3:
             goal = self.goal  # no re-planning for small moves
-        return self._out(OracleRetriever._follow(self, self.me, goal, slow=0.3))
+        return self._out(self._follow(self.me, goal, slow=0.3))
 
     def _distance(self, p, q) -> float:
         """Along the floor (the belief's cells), from ``p`` to ``q``."""

@@ -17,13 +17,13 @@ import math
 
 import numpy as np
 
-from agents.scripted import Agent, _pursue, _wheels
+from agents.scripted import MapDriver, _wheels
 
 REACH = 0.45  # m: a little inside the world's 0.5 m reach
 HAND_OVER = 0.85  # m from the person: the object goes down about 0.4 m in front of the robot
 
 
-class OracleRetriever(Agent):
+class OracleRetriever(MapDriver):
     name = "oracle"
 
     def reset(self, env, obs, info):
@@ -41,29 +41,8 @@ class OracleRetriever(Agent):
                 k = int(np.argmin(g))
                 best = min(best, (float(g[k]), n, q[k]), key=lambda t: t[0])
         _, self.target, self.spot = best
-        self.path, self.k, self.goal = None, 1, None
         self.tries = 0  # put-downs tried at the person (no room in front: turn a little and try again)
         self.hand_spot, self.tried = None, []
-
-    def _follow(self, w, goal, slow: float = 0.0) -> np.ndarray:
-        p = w.pose[:2]
-        if self.path is None or self.goal is None or np.any(self.goal != goal) or w.bumped:
-            path, length = w.grid.shortest_path(p, goal)
-            self.path = path if np.isfinite(length) and len(path) > 1 else np.array([p, goal])
-            self.k, self.goal = 1, np.array(goal, float)
-        while (self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2
-               and w.grid.line_of_sight(p, self.path[self.k + 1])):
-            self.k += 1
-        return _pursue(p, w.pose[2], self.path[min(self.k, len(self.path) - 1)], self.robot, self.dt,
-                       slow_within=slow)
-
-    def _face(self, w, xy, offset: float = 0.0) -> tuple[np.ndarray, bool]:
-        v = np.asarray(xy) - w.pose[:2]
-        err = (math.degrees(math.atan2(v[1], v[0])) + offset - w.pose[2] + 180.0) % 360.0 - 180.0
-        if abs(err) < 8.0:
-            return np.zeros(2), True
-        rate = math.copysign(min(abs(math.radians(err)) / self.dt * 0.8, math.radians(self.robot.max_turn_deg)), err)
-        return _wheels(0.0, rate, self.robot), False
 
     def act(self, obs, info):
         priv = self.env.privileged()
@@ -76,7 +55,7 @@ class OracleRetriever(Agent):
                 return self._out(wheels, stop=facing)
             return self._out(self._follow(w, self.spot, slow=0.3))
         if self.tries >= 15:  # no room to put it down from here: hand over from another side of the person
-            self.tries, self.hand_spot = 0, self._another_spot(w, person)
+            self.tries, self.hand_spot = 0, another_spot(w, person, self.tried)
         goal = person if self.hand_spot is None else self.hand_spot
         close = np.hypot(*(person - w.pose[:2])) <= HAND_OVER if self.hand_spot is None else \
             np.hypot(*(self.hand_spot - w.pose[:2])) <= 0.15
@@ -87,24 +66,27 @@ class OracleRetriever(Agent):
             return self._out(wheels, stop=facing)
         return self._out(self._follow(w, goal, slow=0.3))
 
-    def _another_spot(self, w, person) -> np.ndarray | None:
-        """A navigable place 0.6-0.9 m from the person not tried before, the nearest (geodesic) first."""
-        g = w.grid
-        rc = g.cell_of(person)[0]
-        k = int(np.ceil(0.9 / g.config.cell)) + 1
-        rr, cc = np.mgrid[rc[0] - k:rc[0] + k + 1, rc[1] - k:rc[1] + k + 1]
-        xy = g.center_of(np.c_[rr.ravel(), cc.ravel()])
-        d = np.hypot(*(xy - person).T)
-        xy = xy[(d >= 0.6) & (d <= 0.9)]
-        xy = xy[g.is_navigable(xy)]
-        for t in self.tried:
-            xy = xy[np.hypot(*(xy - t).T) > 0.4]
-        if not len(xy):
-            return None
-        geo = g.geodesic_from_field(g.distance_field(w.pose[:2]), xy)
-        spot = xy[int(np.argmin(geo))]
-        self.tried.append(spot)
-        return spot
+
+
+def another_spot(w, person, tried: list) -> np.ndarray | None:
+    """A navigable place of ``w.grid`` 0.6-0.9 m from the person, 0.4 m from every place in ``tried`` (appended to), the
+    nearest (geodesic) from ``w.pose`` first: where to hand an object over when there is no room in front."""
+    g = w.grid
+    rc = g.cell_of(person)[0]
+    k = int(np.ceil(0.9 / g.config.cell)) + 1
+    rr, cc = np.mgrid[rc[0] - k:rc[0] + k + 1, rc[1] - k:rc[1] + k + 1]
+    xy = g.center_of(np.c_[rr.ravel(), cc.ravel()])
+    d = np.hypot(*(xy - person).T)
+    xy = xy[(d >= 0.6) & (d <= 0.9)]
+    xy = xy[g.is_navigable(xy)]
+    for t in tried:
+        xy = xy[np.hypot(*(xy - t).T) > 0.4]
+    if not len(xy):
+        return None
+    geo = g.geodesic_from_field(g.distance_field(w.pose[:2]), xy)
+    spot = xy[int(np.argmin(geo))]
+    tried.append(spot)
+    return spot
 
 
 _RECOGNISER = None
@@ -157,7 +139,6 @@ class SpeakerBelief:
         self.cells = np.stack([rows[ok], cols[ok]], 1)
         self.xy = g.center_of(self.cells)
         n = len(self.xy)
-        self.belief = np.full((2, n), 1.0 / max(n, 1))
         # the cells' 8-neighbour graph (the ways sound takes round corners and through doors)
         index = -np.ones(rows.shape, np.int64)
         index[ok] = np.arange(n)
@@ -316,6 +297,13 @@ class SpeakerBelief:
         near = np.sum((self.xy - self.xy[j]) ** 2, axis=1) < 0.25
         return (b[near, None] * self.xy[near]).sum(0) / b[near].sum()
 
+    def snap(self, q) -> np.ndarray:
+        """``q`` if the robot can stand there, else the nearest cell (a person may stand where a robot cannot)."""
+        q = np.asarray(q, float)
+        if self.grid.is_navigable(q[None])[0]:
+            return q
+        return self.xy[int(np.argmin(np.sum((self.xy - q) ** 2, axis=1)))]
+
     def best(self, which: int = 0) -> tuple[np.ndarray, float]:
         """The densest place (the weighted centre of the most mass within 0.5 m, among the 64 likeliest cells) and
         that mass."""
@@ -342,14 +330,14 @@ class _Me:
         self.grid, self.pose, self.bumped = grid, np.zeros(3), False
 
 
-class ScriptedRetriever(OracleRetriever):
-    """Voice retrieval from the robot's sensors and its semantic map: listens for the command while turning on
-    the spot, recognises it (restricted to the categories on its map), reports where the voice alone places the
-    speaker, fetches the nearest object of that category along the map and delivers it to the nearest likely place
-    of the person (:class:`SpeakerBelief`, audio and vision), putting it down once it sees a person there within
-    0.85 m (without a camera: at the voice's likeliest place); a likely place it looks at for a second and finds empty is dropped. It reports where the voice alone
-    places the speaker once it has understood the command and heard two voice onsets that carried a direction at
-    least a second apart (in these reverberant rooms an utterance's first onset carries its direction and little
+class ScriptedRetriever(MapDriver):
+    """Voice retrieval from the robot's sensors and its semantic map. It listens for the command while turning on
+    the spot and recognises it (restricted to the categories on its map); fetches the nearest object of that
+    category along the map; delivers it to the nearest likely place of the person (:class:`SpeakerBelief`, audio
+    and vision), putting it down once it sees a person there within 0.85 m (without a camera: at the voice's
+    likeliest place); a likely place it looks at for a second and finds empty is dropped. It reports where the voice
+    alone places the speaker once it has understood the command and heard two voice onsets that carried a direction
+    at least a second apart (an utterance's first onset carries its direction in these reverberant rooms and little
     else does; one direction leaves front and back open, a second heard after the robot turned or moved settles
     it), or else when it puts the object down."""
 
@@ -358,7 +346,7 @@ class ScriptedRetriever(OracleRetriever):
     LISTEN_TURN = 90.0  # deg/s while listening for the command
 
     def reset(self, env, obs, info):
-        Agent.reset(self, env, obs, info)
+        super().reset(env, obs, info)
         from sonicverse_core.tasks.retrieval import SPOKEN
 
         self.sr = env.cfg.sample_rate
@@ -373,7 +361,6 @@ class ScriptedRetriever(OracleRetriever):
         self.phase = "listen"
         self.category = None
         self.target = self.spot = None
-        self.path, self.k, self.goal = None, 1, None
         self.tries, self.hand_spot, self.tried = 0, None, []
         self.seen_at: tuple | None = None  # (xy, step) of the last person seen
         self.goal_xy = None
@@ -466,7 +453,7 @@ class ScriptedRetriever(OracleRetriever):
             goal, _ = self.ears.best(0)
             seen = True
         if self.tries >= 15:
-            self.tries, self.hand_spot = 0, self._another_spot(self.me, goal)
+            self.tries, self.hand_spot = 0, another_spot(self.me, goal, self.tried)
         if self.hand_spot is not None and np.hypot(*(self.hand_spot - goal)) > 1.2:
             self.hand_spot = None  # the belief moved on
         d = float(np.hypot(*(goal - p)))
@@ -487,9 +474,5 @@ class ScriptedRetriever(OracleRetriever):
                 e._normalise()
                 self.goal_xy, self.stare = None, 0
             return self._out(wheels)
-        g = self.grid
-        to = goal if self.hand_spot is None else self.hand_spot
-        if not g.is_navigable(np.array([to]))[0]:  # the person stands on no robot's cell: the nearest that is
-            q = self.ears.xy
-            to = q[int(np.argmin(np.hypot(*(q - to).T)))]
+        to = self.ears.snap(goal) if self.hand_spot is None else self.hand_spot
         return self._out(self._follow(self.me, to, slow=0.3))

@@ -107,6 +107,37 @@ class OracleAgent(Agent):
                                  slow_within=0.3 if self.k >= len(self.path) - 1 else 0.0))
 
 
+class MapDriver(Agent):
+    """What agents that know the map share: drive a world's (or a map's) grid to a goal along its shortest path,
+    re-planned when the goal changes or the robot bumps, and turn to face a place. ``w`` is anything with ``pose``
+    (x, y, yaw degrees), ``grid`` (a NavGrid) and ``bumped``: the world for oracles, the robot's map and odometry for
+    the scripted agents."""
+
+    def reset(self, env, obs, info) -> None:
+        super().reset(env, obs, info)
+        self.path, self.k, self.goal = None, 1, None
+
+    def _follow(self, w, goal, slow: float = 0.0) -> np.ndarray:
+        p = w.pose[:2]
+        if self.path is None or self.goal is None or np.any(self.goal != goal) or w.bumped:
+            path, length = w.grid.shortest_path(p, goal)
+            self.path = path if np.isfinite(length) and len(path) > 1 else np.array([p, goal])
+            self.k, self.goal = 1, np.array(goal, float)
+        while (self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2
+               and w.grid.line_of_sight(p, self.path[self.k + 1])):
+            self.k += 1
+        return _pursue(p, w.pose[2], self.path[min(self.k, len(self.path) - 1)], self.robot, self.dt,
+                       slow_within=slow)
+
+    def _face(self, w, xy, offset: float = 0.0) -> tuple[np.ndarray, bool]:
+        v = np.asarray(xy) - w.pose[:2]
+        err = (math.degrees(math.atan2(v[1], v[0])) + offset - w.pose[2] + 180.0) % 360.0 - 180.0
+        if abs(err) < 8.0:
+            return np.zeros(2), True
+        rate = math.copysign(min(abs(math.radians(err)) / self.dt * 0.8, math.radians(self.robot.max_turn_deg)), err)
+        return _wheels(0.0, rate, self.robot), False
+
+
 class MapAgent(Agent):
     """What the sensor-only agents share: the odometry pose from the ``pose`` observation, an occupancy grid of
     ``SIZE`` x ``SIZE`` cells of ``CELL`` m around the start (filled from depth), and a planner on it."""

@@ -39,22 +39,6 @@ def choose_backend(name: str) -> str:
     return "desktop" if has_display() else "headless"
 
 
-def make_backend(name: str, a, recording=None):
-    size = a.size
-    if name == "openvr":
-        from app.vr.openvr_backend import OpenVRBackend
-
-        return OpenVRBackend(size=size)
-    w, h = size or (512, 512)
-    if name == "desktop":
-        from app.vr.desktop import DesktopBackend
-
-        return DesktopBackend(w, h, target_hz=a.rate)
-    from app.vr.headless import HeadlessBackend
-
-    return HeadlessBackend(recording, target_hz=a.rate or 90.0, width=w, height=h, realtime=a.realtime)
-
-
 def cmd_vr(a) -> int:
     from app.vr.frame import Recording
     from app.vr.session import SessionConfig, VRSession
@@ -88,7 +72,9 @@ def cmd_vr(a) -> int:
                         audio=a.audio or ("offline" if headless else "live"), audio_device=a.audio_device,
                         robots=robots, msaa=a.msaa, cull_rooms=a.cull_rooms, seed=seed,
                         write_frames=a.write_frames if a.write_frames is not None else (10 if headless else 0))
-    backend = make_backend(backend_name, a, recording)
+    from app.vr import open_backend
+
+    backend = open_backend(backend_name, a.size, a.rate, a.realtime, recording)
     with VRSession(cfg, backend, task=task) as s:
         if task is not None:
             s.recording.meta.update(task=task.name, agent=getattr(task, "agent_name", None))

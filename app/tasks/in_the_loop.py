@@ -128,6 +128,7 @@ class RobotInTheLoop(FrameTask):
         from scipy.signal import resample_poly
 
         from app.vr.transforms import look_matrix
+        from sonicverse_core.tasks.base import odometry
 
         w = session.world
         obs = {}
@@ -149,11 +150,7 @@ class RobotInTheLoop(FrameTask):
             _, depth = session.views.render_camera(look_matrix(*w.camera), c.width, c.height, c.hfov, depth=True)
             obs["depth"] = np.minimum(depth, c.depth_max).astype(np.float32)[..., None]
         obs["bump"] = np.array([1.0 if w.bumped else 0.0], np.float32)
-        a = math.radians(self.start[2])
-        d = w.pose[:2] - self.start[:2]
-        dyaw = math.radians(w.pose[2] - self.start[2])
-        obs["pose"] = np.array([math.cos(a) * d[0] + math.sin(a) * d[1], -math.sin(a) * d[0] + math.cos(a) * d[1],
-                                math.sin(dyaw), math.cos(dyaw)], np.float32)
+        obs["pose"] = odometry(self.start, w.pose)
         return obs
 
     # --- what a task adds -----------------------------------------------------------------------------------------

@@ -149,6 +149,7 @@ def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str
     the task does (or the user closes the window / quits, or after ``max_seconds``: the task's own limit). Returns
     the task's metric keys with 95% CIs over the episodes (trials), as :func:`run_task` does, and writes a CSV."""
     from app.tasks.in_the_loop import OrientationTrials, make_frame_task
+    from app.vr import open_backend
     from app.vr.session import SessionConfig, VRSession
     from sonicverse_core.tasks.episodes import homes
     from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
@@ -161,10 +162,10 @@ def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str
     csv_path = Path(out) / f"{spec.cli}_{agent or spec.agents[0]}_{backend}_s{seed}.csv" if out else None
     n = 1 if spec.kind == "trials" else episodes
     for i in range(n):
-        s_i = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+        s_i = episode_seed(seed, i)
         t = make_frame_task(spec.cli, agent, s_i, trials=trials, mode=mode)
         audio_only = isinstance(t, OrientationTrials)
-        be = _vr_backend(backend, rate, size)
+        be = open_backend(backend, size, rate or (30.0 if backend == "headless" else None))
         limit = max_seconds or (spec.max_steps * 0.1 if not audio_only else 60.0 * trials)
         cfg = SessionConfig(scene=scenes[i % len(scenes)], views=not audio_only, robots=0 if audio_only else 1,
                             audio="offline" if backend == "headless" else "live", seed=s_i)
@@ -192,18 +193,3 @@ def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str
     if csv_path:
         res["csv"] = str(csv_path)
     return res
-
-
-def _vr_backend(name: str, rate, size):
-    w, h = size or (512, 512)
-    if name == "openvr":
-        from app.vr.openvr_backend import OpenVRBackend
-
-        return OpenVRBackend(size=size)
-    if name == "desktop":
-        from app.vr.desktop import DesktopBackend
-
-        return DesktopBackend(w, h, target_hz=rate)
-    from app.vr.headless import HeadlessBackend
-
-    return HeadlessBackend(None, target_hz=rate or 30.0, width=w, height=h)

@@ -194,6 +194,16 @@ class Task:
         raise ConfigError(f"task {self.name} scores no estimates")
 
 
+def odometry(start, pose) -> np.ndarray:
+    """The ``pose`` observation: (x, y) of ``pose`` in the frame of ``start`` (x forward, y left) and the sine and
+    cosine of the yaw turned since (both poses x, y, yaw degrees); :meth:`SemanticMap.to_map` inverts it."""
+    a = math.radians(start[2])
+    d = np.asarray(pose[:2], float) - np.asarray(start[:2], float)
+    dyaw = math.radians(pose[2] - start[2])
+    return np.array([math.cos(a) * d[0] + math.sin(a) * d[1], -math.sin(a) * d[0] + math.cos(a) * d[1],
+                     math.sin(dyaw), math.cos(dyaw)], np.float32)
+
+
 @dataclass(frozen=True)
 class MapObject:
     name: str
@@ -414,11 +424,7 @@ class TaskEnv(gym.Env):
             self._pose_err += self._noise_rng.normal(0.0, 1.0, 3) * np.array([sn[0], sn[0], sn[1]])
         self.sensed_pose = pose = w.pose + self._pose_err
         if "pose" in self.sensors:
-            a = math.radians(self._start[2])
-            d = pose[:2] - self._start[:2]
-            dx, dy = math.cos(a) * d[0] + math.sin(a) * d[1], -math.sin(a) * d[0] + math.cos(a) * d[1]
-            dyaw = math.radians(pose[2] - self._start[2])
-            obs["pose"] = np.array([dx, dy, math.sin(dyaw), math.cos(dyaw)], np.float32)
+            obs["pose"] = odometry(self._start, pose)
         self.task.observe(self, obs)
         return obs
 
