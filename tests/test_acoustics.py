@@ -55,6 +55,23 @@ def test_itd_and_ild_for_lateral_sources(hrtf):
     assert abs(lag) <= 2
 
 
+def test_stereo_panner_has_woodworth_itd():
+    """Without HRTFs (output='stereo', the study's HRTF-off condition) the ears still differ in time as Woodworth's
+    spherical head says, (a/c)(theta + sin theta), and in level by constant-power panning."""
+    a_c = 0.0875 / 343.0
+    for az in (30.0, -60.0, 150.0, 180.0):  # (at +-90 constant-power panning leaves the far ear silent)
+        t = np.radians(az)
+        y = _render((2 * np.cos(t), 2 * np.sin(t), 0), output="stereo", seconds=0.6)[:, 4800:]
+        lag = np.argmax(np.correlate(y[1, :4800], y[0, :4800], "full")) - 4799  # >0: right ear later
+        th = np.arcsin(np.sin(t))
+        assert lag / 48000 == pytest.approx(a_c * (th + np.sin(th)), abs=1.5 / 48000), az
+        f = np.fft.rfftfreq(y.shape[1], 1 / 48000)
+        band = (f > 200) & (f < 3000)  # below where the fractional delay's linear interpolation colours the ears
+        Y = np.abs(np.fft.rfft(y, axis=1)[:, band]) ** 2
+        ild = 10 * np.log10(np.mean(Y[0]) / np.mean(Y[1]))
+        assert ild == pytest.approx(10 * np.log10((1 + np.sin(t)) / (1 - np.sin(t))), abs=0.3), az
+
+
 @pytest.mark.parametrize("material", ["BrickBare", "ConcreteBlockPainted", "PlasterRough", "Sheetrock"])
 def test_rt60_within_10_percent_of_eyring(material):
     s = load_scene(f"shoebox:6x4x3?material={material}")

@@ -333,6 +333,22 @@ def test_onset_delays_and_pan_spectra():
         np.testing.assert_allclose(spec, pan[:, :, None] * curve[:, None, :], rtol=1e-6)
 
 
+def test_woodworth_delays():
+    """The stereo panner's per-ear delays against Woodworth's formula written out in NumPy."""
+    n, ac = 50, 0.0875 / 343.0
+    dirs = RNG.normal(size=(n, 3))
+    dirs[0] = [0, 0, 0]  # a source at the head: no interaural delay
+    d0 = RNG.uniform(0, 0.05, n)
+    out = np.empty((n, 2))
+    K.woodworth_delays(dirs, d0, ac, out)
+    r = np.linalg.norm(dirs, axis=1)
+    th = np.arcsin(np.divide(dirs[:, 1], r, out=np.zeros(n), where=r > 0))
+    itd = ac * (th + np.sin(th))
+    np.testing.assert_allclose(out[:, 1] - out[:, 0], itd, atol=1e-15)
+    np.testing.assert_allclose(out.mean(1), d0 + 0.5 * ac * (np.pi / 2 + 1), atol=1e-15)
+    assert np.all(out >= d0[:, None] - 1e-15)
+
+
 def test_block_glue_kernels():
     """The small kernels that replace NumPy expressions in the renderer's block (each against that expression)."""
     n = 6

@@ -71,6 +71,7 @@ class AudioScene:
     occlusion: bool = True
     early_reflections: bool = True
     late_reverb: bool = True
+    hrtf: bool = True  # False: an interaural time and level panner (RenderConfig output 'stereo')
     bake_rays: int = 2000
     occlusion_budget: int = 2  # source-listener segments recast per block at most (a door recasts what it affects)
     mic_directivity: float = 0.5  # speech is louder in front of the mouth

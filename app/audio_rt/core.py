@@ -104,6 +104,7 @@ def build_renderer(scene_setup: AudioScene, cfg: AudioConfig, scene=None, role: 
 
             probes = scene_probes(scene, BakeConfig(rays=scene_setup.bake_rays))
     rc = RenderConfig(sample_rate=cfg.sample_rate, block=cfg.block, occlusion=scene_setup.occlusion,
+                      output="binaural" if scene_setup.hrtf else "stereo",
                       early_reflections=scene_setup.early_reflections, late_reverb=scene_setup.late_reverb,
                       occlusion_rays_per_block=scene_setup.occlusion_budget)
     r = AcousticRenderer(scene, rc, probes=probes)

@@ -11,7 +11,7 @@ def cmd_eval(a) -> int:
     from app.tasks.evaluate import run_eval
 
     csv_path = a.csv or f"out/eval/{a.task}_{a.agent}_{a.split}_{a.sounds}_s{a.seed}.csv"
-    kw = {}
+    kw = {"hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
     if a.homes is not None:
         kw["homes"] = a.homes
     if a.max_steps is not None:
@@ -84,7 +84,8 @@ def cmd_task_run(a) -> int:
         from app.tasks.run import run_in_vr
 
         res = run_in_vr(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, backend=a.backend, out=a.out,
-                        trials=a.trials or 10, mode=a.mode if a.mode != "mixed" else "turn")
+                        trials=a.trials or 10, mode=a.mode if a.mode != "mixed" else "turn",
+                        hrtf=a.hrtf == "on", reverb=a.reverb == "on")
         print(json.dumps(res) if a.json else "\n".join(f"{k:>26}: {v['mean']}" for k, v in res.items()
                                                        if isinstance(v, dict) and "mean" in v))
         return 0
@@ -97,7 +98,7 @@ def cmd_task_run(a) -> int:
     if spec.kind == "trials":
         participant = {"noise_deg": a.noise, "front_back": a.front_back, "learning_rate": a.learning_rate}
         task_kw = {"mode": a.mode, "blocks": a.blocks, "staircase": a.staircase, "difficulty": a.difficulty,
-                   "render": not a.no_render}
+                   "render": not a.no_render, "hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
     res = run_task(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, out=a.out, maps=a.maps,
                    env_kwargs=kw, trials=a.trials, participant=participant, task_kwargs=task_kw,
                    progress=not a.json)
@@ -159,6 +160,10 @@ def add_task_commands(sub, bench_sub) -> None:
     tr.add_argument("--backend", default="headless", choices=("headless", "desktop", "openvr"),
                     help="headless: the Gymnasium env with the simulated person (default); desktop / openvr: the VR "
                          "app with you as the person, one session per episode")
+    tr.add_argument("--hrtf", default="on", choices=("on", "off"),
+                    help="off: an interaural time and level panner instead of the HRTF (default: on)")
+    tr.add_argument("--reverb", default="on", choices=("on", "off"),
+                    help="off: no early reflections and no late reverb (default: on)")
     tr.add_argument("--json", action="store_true", help="print one JSON object")
     tr.set_defaults(func=cmd_task_run)
 

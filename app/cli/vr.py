@@ -70,7 +70,8 @@ def cmd_vr(a) -> int:
     out = a.out or ("out/vr" if headless else None)
     cfg = SessionConfig(scene=scene or "builtin:apartment", views=views,
                         audio=a.audio or ("offline" if headless else "live"), audio_device=a.audio_device,
-                        robots=robots, msaa=a.msaa, cull_rooms=a.cull_rooms, seed=seed,
+                        robots=robots, msaa=a.msaa, cull_rooms=a.cull_rooms, seed=seed, hrtf=a.hrtf == "on",
+                        reverb=a.reverb == "on",
                         write_frames=a.write_frames if a.write_frames is not None else (10 if headless else 0))
     from app.vr import open_backend
 
@@ -161,6 +162,10 @@ def add_vr_commands(sub, bench_sub) -> None:
     v.add_argument("--agent", default=None, help="the robot's agent for --task (default: the task's first)")
     v.add_argument("--trials", type=A.count(1, 10_000), default=10, help="orientation-training trials (default: 10)")
     v.add_argument("--mode", default="turn", choices=("turn", "walk"), help="orientation-training trials' kind")
+    v.add_argument("--hrtf", default="on", choices=("on", "off"),
+                   help="off: an interaural time and level panner instead of the HRTF (default: on)")
+    v.add_argument("--reverb", default="on", choices=("on", "off"),
+                   help="off: no early reflections and no late reverb (default: on)")
     v.add_argument("--json", action="store_true", help="print one JSON object with the frame statistics")
     v.set_defaults(func=cmd_vr)
 

@@ -143,7 +143,8 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
 
 def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str = "test", seed: int = 0,
               backend: str = "desktop", out: str | Path | None = None, trials: int = 10, mode: str = "turn",
-              rate: float | None = None, size=None, max_seconds: float | None = None) -> dict:
+              rate: float | None = None, size=None, max_seconds: float | None = None, hrtf: bool = True,
+              reverb: bool = True) -> dict:
     """``task run --backend desktop|openvr``: the task in the VR app with the user as the person, one session per
     episode (orientation training: one session of ``trials`` trials), each in a home of ``split`` and ending when
     the task does (or the user closes the window / quits, or after ``max_seconds``: the task's own limit). Returns
@@ -168,7 +169,7 @@ def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str
         be = open_backend(backend, size, rate or (30.0 if backend == "headless" else None))
         limit = max_seconds or (spec.max_steps * 0.1 if not audio_only else 60.0 * trials)
         cfg = SessionConfig(scene=scenes[i % len(scenes)], views=not audio_only, robots=0 if audio_only else 1,
-                            audio="offline" if backend == "headless" else "live", seed=s_i)
+                            audio="offline" if backend == "headless" else "live", seed=s_i, hrtf=hrtf, reverb=reverb)
         with VRSession(cfg, be, task=t) as sess:
             sess.run(frames=int(limit * be.target_hz))
             summ = sess.summary()["task"]

@@ -126,11 +126,12 @@ class OfflineAudio(_Ears):
     live = False
 
     def __init__(self, scene, sources, robots: list, head: tuple, sample_rate: int = 48_000, block: int = 256,
-                 voice: np.ndarray | None = None):
+                 voice: np.ndarray | None = None, hrtf: bool = True, reverb: bool = True):
         from app.audio_rt.core import build_renderer
 
         self.scene, self.sources = scene, sources
-        setup = AudioScene(spec=scene.spec, sources=[s for _, s in sources], robots=list(robots), head=tuple(head))
+        setup = AudioScene(spec=scene.spec, sources=[s for _, s in sources], robots=list(robots), head=tuple(head),
+                           hrtf=hrtf, early_reflections=reverb, late_reverb=reverb)
         cfg = AudioConfig(sample_rate=sample_rate, block=block, mic=voice is not None)
         self.r, _, self.mic, self.user, _ = build_renderer(setup, cfg, scene=scene)
         self.sr, self.block = sample_rate, block
@@ -181,13 +182,14 @@ class LiveAudio(_Ears):
     live = True
 
     def __init__(self, scene, sources, robots: list, head: tuple, device=None, sample_rate: int = 48_000,
-                 block: int = 256, mic: bool = True, mode: str = "process"):
+                 block: int = 256, mic: bool = True, mode: str = "process", hrtf: bool = True, reverb: bool = True):
         from app.audio_rt.engine import AudioEngine
 
         self.scene, self.sources = scene, sources
         self.engine = AudioEngine(
             AudioConfig(device=device, sample_rate=sample_rate, block=block, mic=mic, mode=mode),
-            AudioScene(spec=scene.spec, sources=[s for _, s in sources], robots=list(robots), head=tuple(head)))
+            AudioScene(spec=scene.spec, sources=[s for _, s in sources], robots=list(robots), head=tuple(head),
+                       hrtf=hrtf, early_reflections=reverb, late_reverb=reverb))
         self.info = self.engine.start()
         self.doors = list(self.engine.scene.doors)
         self.sr = sample_rate

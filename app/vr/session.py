@@ -32,7 +32,8 @@ SYNC_FRAMES = 90  # frames between syncs of the files a session writes as it run
 class SessionConfig:
     """scene: a scene spec; views: False = audio-only (no renderer is imported, tracking and audio go on);
     audio: 'offline' (rendered by the frame clock: headless), 'live' (app/audio_rt on a device) or 'none';
-    robots: 0 or 1 robot sharing the scene; voice: what the user says in offline mode (text for espeak-ng)."""
+    robots: 0 or 1 robot sharing the scene; voice: what the user says in offline mode (text for espeak-ng);
+    hrtf, reverb: the study conditions (HRTF or a time/level panner; reflections and reverb or none)."""
 
     scene: str = "builtin:apartment"
     views: bool = True
@@ -47,6 +48,8 @@ class SessionConfig:
     seed: int = 0
     voice: str | None = "robot, come here please"
     write_frames: int = 0  # save every n-th stereo frame as a PNG (0: none)
+    hrtf: bool = True  # False: an interaural time and level panner instead of the HRTF (every listener)
+    reverb: bool = True  # False: no early reflections and no late reverb
 
     def __post_init__(self):
         if self.audio not in ("offline", "live", "none"):
@@ -148,13 +151,14 @@ class VRSession:
         head = (self.spawn[0], self.spawn[1], self.scene.floor_z + 1.6, 0.0, 0.0)
         if cfg.audio == "live":
             return LiveAudio(self.scene, sources, self._robots(), head, device=cfg.audio_device,
-                             sample_rate=cfg.sample_rate, block=cfg.block)
+                             sample_rate=cfg.sample_rate, block=cfg.block, hrtf=cfg.hrtf, reverb=cfg.reverb)
         voice = None
         if cfg.voice:
             from assets_manifest.speech import speak
 
             voice = speak(cfg.voice, sample_rate=cfg.sample_rate)[0]
-        return OfflineAudio(self.scene, sources, self._robots(), head, cfg.sample_rate, cfg.block, voice=voice)
+        return OfflineAudio(self.scene, sources, self._robots(), head, cfg.sample_rate, cfg.block, voice=voice,
+                            hrtf=cfg.hrtf, reverb=cfg.reverb)
 
     # --- the loop -------------------------------------------------------------------------------------------------
     def step(self, f: FrameInput) -> None:

@@ -11,7 +11,7 @@ from sonicverse_core.errors import ConfigError
 class RenderConfig:
     sample_rate: int = 48_000
     block: int = 256
-    output: str = "binaural"  # binaural | stereo (pan) | mono
+    output: str = "binaural"  # binaural (HRTF) | stereo (interaural time and level panner, no HRTF) | mono
     hrtf: str = "kemar"  # or a .sofa path
     hrtf_interpolation: str = "barycentric"  # or nearest
     hrtf_taps: int = 0  # 0: 4 ms worth at the engine rate

@@ -554,6 +554,21 @@ def pan_spectra(dirs, curve, mono, spec):
 
 
 @njit(**_opts)
+def woodworth_delays(dirs, delay0, a_over_c, out):
+    """Without HRTFs (stereo): per-ear delays out[i, e] = delay0[i] + (a/c)(pi/2 + 1)/2 -+ ITD_i/2 (left -, right +),
+    ITD_i = (a/c)(theta_i + sin theta_i) (Woodworth), theta_i = asin(y_i) the lateral angle (+ left); the common
+    offset keeps both ears at or after delay0 (a sound at 90 degrees reaches the far ear (a/c)(pi/2 + 1) later)."""
+    half = 0.5 * a_over_c * (0.5 * np.pi + 1.0)
+    for i in range(dirs.shape[0]):
+        r = np.sqrt(dirs[i, 0] ** 2 + dirs[i, 1] ** 2 + dirs[i, 2] ** 2)
+        y = min(max(dirs[i, 1] / r, -1.0), 1.0) if r > 0 else 0.0
+        th = np.arcsin(y)
+        itd = a_over_c * (th + np.sin(th))
+        out[i, 0] = delay0[i] + half - 0.5 * itd
+        out[i, 1] = delay0[i] + half + 0.5 * itd
+
+
+@njit(**_opts)
 def all_finite(x):
     """True when every element of x (any shape) is finite."""
     for v in x.flat:

@@ -57,6 +57,7 @@ from sonicverse_core.acoustics.kernels import (accumulate, accumulate_sh, add_ta
                                                direct_geometry, distance_gains, encode_taps, farther, gather,
                                                groups_sending, head_rotation, image_taps, late_groups, late_send, limit,
                                                mix_ramped, mix_spectra, onset_delays, pan_spectra, read_sources, rows_moved, scale_into,
+                                               woodworth_delays,
                                                shift_left, smooth_toward)
 from sonicverse_core.acoustics.occlusion import Occlusion, may_occlude
 
@@ -66,6 +67,7 @@ from sonicverse_core.errors import ConfigError, PoseError
 from sonicverse_core.scene.materials import BANDS
 
 MID = slice(4, 7)  # 500 Hz - 2 kHz
+HEAD_RADIUS = 0.0875  # m: the stereo panner's head (Woodworth's ITD)
 MAX_MIXING_TIME = 0.08  # s: the late tail starts at most this long after the direct sound
 
 
@@ -480,7 +482,10 @@ class AcousticRenderer:
             onset_delays(w, tri, self.hrtf.onsets, delay0, spread, self._mean_onset(), delay)
         else:
             self._pan(dirs, curve, spec)
-            np.copyto(delay, delay0[:, None])
+            if cfg.output == "stereo":  # an interaural time and level panner
+                woodworth_delays(dirs, delay0, HEAD_RADIUS / SPEED_OF_SOUND, delay)
+            else:
+                np.copyto(delay, delay0[:, None])
         fresh = st["fresh"][:n]
         p_delay, p_gain, p_spec = st["delay"][:n], st["gain"][:n], st["spec"][:n]
         if st["any_fresh"]:
@@ -499,7 +504,8 @@ class AcousticRenderer:
         st["spec"], st["spec_new"] = st["spec_new"], st["spec"]  # this block's filters become the previous ones
 
     def _pan(self, dirs, curve, spec) -> None:
-        """Without HRTFs: constant-power panning by the lateral component (stereo) or sqrt(1/2) (mono)."""
+        """Without HRTFs: constant-power panning by the lateral component (stereo; with Woodworth's interaural delay,
+        :func:`woodworth_delays`) or sqrt(1/2) (mono)."""
         pan_spectra(dirs, curve, self.cfg.output == "mono", spec)
 
     def _mean_onset(self) -> np.ndarray:

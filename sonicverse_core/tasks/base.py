@@ -55,6 +55,7 @@ class TaskConfig:
     audio_window: float = 1.0  # s of audio behind the spectrogram
     spec_pool: tuple = (4, 2)
     reverb: bool = True  # reverb probes, early reflections and late reverb
+    hrtf: bool = True  # False: the robot's ears are an interaural time and level panner (no HRTF)
     occlusion: bool = True
     success_reward: float = 10.0
     step_penalty: float = 0.01
@@ -335,6 +336,7 @@ class TaskEnv(gym.Env):
 
         c = self.cfg
         rc = RenderConfig(sample_rate=c.sample_rate, block=self.spb // self.sub_blocks, occlusion=c.occlusion,
+                          output="binaural" if c.hrtf else "stereo",
                           early_reflections=c.reverb, late_reverb=c.reverb)
         self.renderer = AcousticRenderer(self.home.scene, rc, self.home.probes)
 

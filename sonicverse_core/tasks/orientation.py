@@ -70,6 +70,8 @@ class OrientationConfig:
     walk_radius: float = 0.5
     walk_timeout: float = 20.0
     render: bool = True  # render each stimulus binaurally (what a person hears; the model is told the truth)
+    hrtf: bool = True  # False: an interaural time and level panner (no spectral or front-back cues)
+    reverb: bool = True  # False: the room's reflections and reverb are left out
 
     def __post_init__(self):
         if self.mode not in ("turn", "walk", "mixed"):
@@ -286,7 +288,8 @@ class OrientationTraining:
 
         c = self.cfg
         scene = self._room()
-        rc = RenderConfig(sample_rate=c.sample_rate, block=512)
+        rc = RenderConfig(sample_rate=c.sample_rate, block=512, output="binaural" if c.hrtf else "stereo",
+                          early_reflections=c.reverb, late_reverb=c.reverb)
         r = AcousticRenderer(scene, rc, self._probes)
         head = self.listener_position()
         dur = level if c.difficulty == "duration" else 1.0
