@@ -77,3 +77,8 @@ class DataError(SonicverseError):
 
 class Interrupted(SonicverseError):
     """The user or the system stopped a command (Ctrl-C, SIGTERM); files being written were finished first."""
+
+
+class StudyError(SonicverseError):
+    """A study file that does not validate, or a study action that would lose or overwrite data (a second run of a
+    participant's unfinished session, an unknown participant or session); the message says what to do instead."""

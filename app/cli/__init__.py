@@ -135,6 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
     from app.cli.vr import add_vr_commands
 
     add_vr_commands(sub, bs)
+    from app.cli.study import add_study_commands
+
+    add_study_commands(sub)
     return p
 
 

@@ -322,48 +322,59 @@ class OrientationTraining:
             return [c.mode] * c.blocks
         return ["turn" if b % 2 == 0 else "walk" for b in range(c.blocks)]
 
-    def run(self, participant: SimulatedListener, rng: np.random.Generator, on_trial=None) -> list[dict]:
+    def plan(self) -> list[tuple]:
+        """The session's trials in order: (block, mode), block ``"practice"`` for the practice trials."""
         c = self.cfg
-        rows: list[dict] = []
         plan = [("practice", self.modes()[0])] * c.practice
         for b, mode in enumerate(self.modes()):
             plan += [(b, mode)] * c.trials
+        return plan
+
+    def run(self, participant: SimulatedListener, rng: np.random.Generator, on_trial=None) -> list[dict]:
+        rows: list[dict] = []
         scored = 0
-        for i, (block, mode) in enumerate(plan):
-            stim = self.stimulus(rng)
-            stair = self.staircases[mode]
-            level = stair.level
-            row = {"trial": i, "block": block, "mode": mode, "practice": block == "practice",
-                   "difficulty": c.difficulty, "level": level, **stim}
-            if c.render:
-                audio = self.render(stim, level)
-                row["stimulus_itd_us"] = _itd_us(audio, c.sample_rate)
-                row["stimulus_ild_db"] = _ild_db(audio)
-            if mode == "turn":
-                ra, re, rt = participant.turn(stim["azimuth"], stim["elevation"], scored, c.difficulty, level, rng)
-                err, rev = score_turn(stim["azimuth"], ra)
-                correct = err <= c.correct_deg and not rev
-                row.update(response_azimuth=ra, response_elevation=re, response_time_s=rt, azimuth_error_deg=err,
-                           elevation_error_deg=abs(re - stim["elevation"]), reversal=rev,
-                           reversal_eligible=abs(math.cos(math.radians(stim["azimuth"])))
-                           > math.sin(math.radians(AXIS_EXCLUSION_DEG)))
-            else:
-                a = math.radians(stim["azimuth"])
-                src = stim["distance"] * np.array([math.cos(a), math.sin(a)])
-                w = participant.walk((0.0, 0.0), src, c.walk_radius, c.walk_timeout, scored, c.difficulty, level,
-                                     rng)
-                correct = bool(w["success"])
-                row.update(walk_success=w["success"], path_efficiency=w["path_efficiency"],
-                           time_to_target_s=w["time_to_target_s"], walked_m=w["walked_m"])
-            row["correct"] = bool(correct)
-            row["feedback"] = ("right" if correct else "wrong") if c.feedback else ""
-            if block != "practice":
-                stair.update(correct)
-                scored += 1
+        for i, (block, mode) in enumerate(self.plan()):
+            row = self.run_trial(i, block, mode, participant, rng, scored)
+            scored += block != "practice"
             rows.append(row)
             if on_trial:
                 on_trial(i, row)
         return rows
+
+    def run_trial(self, i: int, block, mode: str, participant: SimulatedListener, rng: np.random.Generator,
+                  scored: int) -> dict:
+        """One trial (its stimulus drawn from ``rng``) at the staircase's level for ``mode``; ``scored``: the scored
+        trials before it (the listener model's practice). Updates the staircase unless it is a practice trial."""
+        c = self.cfg
+        stim = self.stimulus(rng)
+        stair = self.staircases[mode]
+        level = stair.level
+        row = {"trial": i, "block": block, "mode": mode, "practice": block == "practice",
+               "difficulty": c.difficulty, "level": level, **stim}
+        if c.render:
+            audio = self.render(stim, level)
+            row["stimulus_itd_us"] = _itd_us(audio, c.sample_rate)
+            row["stimulus_ild_db"] = _ild_db(audio)
+        if mode == "turn":
+            ra, re, rt = participant.turn(stim["azimuth"], stim["elevation"], scored, c.difficulty, level, rng)
+            err, rev = score_turn(stim["azimuth"], ra)
+            correct = err <= c.correct_deg and not rev
+            row.update(response_azimuth=ra, response_elevation=re, response_time_s=rt, azimuth_error_deg=err,
+                       elevation_error_deg=abs(re - stim["elevation"]), reversal=rev,
+                       reversal_eligible=abs(math.cos(math.radians(stim["azimuth"])))
+                       > math.sin(math.radians(AXIS_EXCLUSION_DEG)))
+        else:
+            a = math.radians(stim["azimuth"])
+            src = stim["distance"] * np.array([math.cos(a), math.sin(a)])
+            w = participant.walk((0.0, 0.0), src, c.walk_radius, c.walk_timeout, scored, c.difficulty, level, rng)
+            correct = bool(w["success"])
+            row.update(walk_success=w["success"], path_efficiency=w["path_efficiency"],
+                       time_to_target_s=w["time_to_target_s"], walked_m=w["walked_m"])
+        row["correct"] = bool(correct)
+        row["feedback"] = ("right" if correct else "wrong") if c.feedback else ""
+        if block != "practice":
+            stair.update(correct)
+        return row
 
     def summary(self, rows: list[dict]) -> dict:
         from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95

@@ -1,0 +1,280 @@
+"""The study launcher's data safety and bookkeeping: balanced Latin squares, frozen orders, SQLite + CSV that survive
+SIGKILL with at most the running trial lost, resume without duplicates, nothing overwritten, the default study end
+to end, the study file's validation."""
+import csv
+import itertools
+import json
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from app.study.design import assign_row, session_plan, williams
+from app.study.runner import StudyRunner, start_session
+from app.study.spec import load_study, parse_study
+from app.study.store import StudyStore
+from sonicverse_core.errors import StudyError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SMALL = """
+name = "small"
+seed = 3
+break_s = 5
+[conditions.a]
+hrtf = "on"
+[conditions.b]
+hrtf = "off"
+simulated = { front_back = 0.4 }
+[conditions.c]
+reverb = "off"
+[[blocks]]
+name = "turns"
+task = "orientation-training"
+trials = 2
+practice = 1
+[[blocks]]
+name = "follow"
+task = "speaker-following"
+trials = 3
+agent = "scripted"
+condition = "a"
+"""
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 6, 7])
+def test_williams_square_is_balanced(n):
+    rows = williams(n)
+    assert len(rows) == (n if n % 2 == 0 else 2 * n)
+    for r in rows:
+        assert sorted(r) == list(range(n))
+    # every condition in every position equally often
+    for pos in range(n):
+        assert Counter(r[pos] for r in rows) == Counter({c: len(rows) // n for c in range(n)})
+    # every condition follows every other equally often (first-order carry-over)
+    if n > 1:
+        pairs = Counter((r[i], r[i + 1]) for r in rows for i in range(n - 1))
+        assert set(pairs) == {(a, b) for a, b in itertools.permutations(range(n), 2)}
+        assert len(set(pairs.values())) == 1
+
+
+def test_williams_first_row_is_the_textbook_one():
+    assert williams(4)[0] == [0, 1, 3, 2]  # 1, 2, n, 3 (1-based)
+    assert williams(6)[0] == [0, 1, 5, 2, 4, 3]
+
+
+def test_participants_fill_the_square_in_enrolment_order(tmp_path):
+    study = parse_study(SMALL)
+    store = StudyStore(tmp_path)
+    rows = williams(3)
+    orders = []
+    for i in range(2 * len(rows)):  # twice round the 6-row square
+        pid = f"P{i + 1:02d}"
+        n = start_session(store, study, pid)
+        orders.append(store.order(pid, n))
+    names = [c.name for c in study.conditions]
+    for pos in range(3):
+        assert Counter(o[pos] for o in orders) == Counter({c: 4 for c in names})
+    assert orders[0] == [names[i] for i in rows[0]] and orders[len(rows)] == orders[0]
+    # frozen: the plan and order a session was created with are read back unchanged by a new store
+    again = StudyStore(tmp_path)
+    assert again.order("P02", 1) == orders[1]
+    assert again.plan("P02", 1) == session_plan(study, orders[1], 2, 1)
+
+
+def test_least_filled_counts_completed_sessions_only(tmp_path):
+    study = parse_study(SMALL.replace('seed = 3', 'seed = 3\ncounterbalance = "least-filled"'))
+    store = StudyStore(tmp_path)
+    start_session(store, study, "A")  # row 0, unfinished
+    start_session(store, study, "B")
+    assert store.session("B")["order_row"] == 0  # A's session is not completed: row 0 is still the least filled
+    store.set_status("A", 1, "finished")
+    start_session(store, study, "C")
+    assert store.session("C")["order_row"] == 1
+    assert assign_row("least-filled", 3, 99, {0: 2, 1: 1, 2: 1, 3: 1, 4: 0, 5: 1}) == 4
+
+
+def test_nothing_is_overwritten(tmp_path):
+    study = parse_study(SMALL)
+    store = StudyStore(tmp_path)
+    start_session(store, study, "P1")
+    with pytest.raises(StudyError, match="study resume"):  # an unfinished session: refuse, point to resume
+        start_session(store, study, "P1")
+    store.set_status("P1", 1, "finished")
+    assert start_session(store, study, "P1") == 2  # after a finished one: the next number
+    with pytest.raises(StudyError, match="exists"):
+        store.add_participant("P1")
+    with pytest.raises(StudyError, match="pseudonymous"):
+        store.add_participant("../etc")
+    slot = store.plan("P1", 2)[0]
+    store.commit_trial("P1", 2, slot, "done", {"x": 1}, {}, {}, "t", 0.1)
+    with pytest.raises(sqlite3.IntegrityError):  # a slot is committed once
+        store.commit_trial("P1", 2, slot, "done", {"x": 2}, {}, {}, "t", 0.1)
+    assert [t["metrics"] for t in store.trials("P1", 2)] == [{"x": 1}]
+    # identifying details go to a separate file, never into the database or the session folders
+    store.add_participant("P9", {"name": "Ada"})
+    assert "Ada" in (tmp_path / "private" / "identities.csv").read_text()
+    assert b"Ada" not in (tmp_path / "study.sqlite").read_bytes()
+
+
+def test_resume_refuses_a_changed_study_file(tmp_path):
+    study = parse_study(SMALL)
+    store = StudyStore(tmp_path)
+    n = start_session(store, study, "P1")
+    with pytest.raises(StudyError, match="another version"):
+        StudyRunner(store, parse_study(SMALL.replace("trials = 3", "trials = 4")), "P1", n)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ("name = 'x y'", "name"),
+    ("name = 'x'\n[conditions.a]\nhrtf = 'maybe'\n[[blocks]]\ntask = 'orientation-training'\ntrials = 1", "hrtf"),
+    ("name = 'x'\n[conditions.a]\n[[blocks]]\ntask = 'audio-goal'\ntrials = 1", "no person"),
+    ("name = 'x'\n[conditions.a]\n[[blocks]]\ntask = 'orientation-training'\ntrials = 0", "trials"),
+    ("name = 'x'\n[conditions.a]\n[[blocks]]\ntask = 'speaker-following'\ntrials = 1\nagent = 'gan'", "agent"),
+    ("name = 'x'\n[conditions.a]\n[[blocks]]\ntask = 'speaker-following'\ntrials = 1\ncondition = 'z'", "condition"),
+    ("name = 'x'\n[conditions.a]\nsimulated = { front_back = 2 }\n[[blocks]]\ntask = 'orientation-training'\n"
+     "trials = 1", "front_back"),
+    ("name = 'x'\ncolour = 1\n[conditions.a]\n[[blocks]]\ntask = 'orientation-training'\ntrials = 1", "colour"),
+    ("name = 'x'\n[conditions.a]\nhome = 'builtin:nowhere'\n[[blocks]]\ntask = 'speaker-following'\ntrials = 1",
+     "home"),
+    ("name = [", "TOML"),
+])
+def test_study_file_mistakes_are_one_line(bad, match):
+    with pytest.raises(StudyError, match=match) as e:
+        parse_study(bad)
+    assert "\n" not in str(e.value)
+
+
+def _run(*args, **kw):
+    return subprocess.run([sys.executable, "-m", "app.cli", "study", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=600, **kw)
+
+
+def test_default_study_runs_headless_with_report(tmp_path):
+    data = tmp_path / "data"
+    r = _run("run", "default", "--participant", "S1", "--data", str(data), "--json")
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    study = load_study("default")
+    plan_len = sum((b.trials + b.practice) * (len(study.conditions) if b.per_condition else 1) for b in study.blocks)
+    assert res["trials"] == plan_len and sorted(res["order"]) == ["hrtf", "panner"]
+    ex = json.loads(_run("export", "--participant", "S1", "--data", str(data), "--json").stdout)
+    assert len(ex["trials"]) == plan_len
+    for t in ex["trials"]:
+        assert {"participant", "session", "block", "trial", "condition", "metrics", "t_mono", "t_wall"} <= set(t)
+    conds = [t["condition"] for t in ex["trials"] if t["task"] == "orientation-training"]
+    assert conds[0] == res["order"][0] and conds[-1] == res["order"][1]
+    # the conditions reached the renderer: the panner condition's stimuli are a time/level panner's
+    man = json.loads((data / "S1" / "session-1" / "manifest.json").read_text())
+    assert man["conditions"]["panner"]["hrtf"] == "off" and man["study_sha256"] == study.sha256
+    assert man["packages"]["numpy"] and man["condition_order"] == res["order"]
+    rep = _run("report", "--data", str(data), "--out", str(tmp_path / "rep"), "--json")
+    assert rep.returncode == 0, rep.stderr
+    plots = json.loads(rep.stdout)["plots"]
+    assert set(plots) == {"learning_curves", "following_distance"}
+    for p in plots.values():
+        assert Path(p).stat().st_size > 10_000
+    # the next run is session 2, session 1 untouched
+    before = (data / "S1" / "session-1" / "trials.csv").read_bytes()
+    r2 = _run("run", "default", "--participant", "S1", "--data", str(data), "--json")
+    assert json.loads(r2.stdout)["session"] == 2 and (data / "S1" / "session-1" / "trials.csv").read_bytes() == before
+
+
+def _csv_slots(path: Path, store, pid, n) -> list:
+    plan = {(s.block, s.trial): s.slot for s in store.plan(pid, n)}
+    with open(path, newline="") as fh:
+        return [plan[(int(r["block"]), int(r["trial"]))] for r in csv.DictReader(fh)]
+
+
+def _wait_mid_trial(proc, db: Path, min_done: int, task: str, timeout=300.0) -> int:
+    """Until a trial of ``task`` has started and not ended, after ``min_done`` trials were committed (polling the
+    database the run writes; the trials last seconds)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.stderr.read()
+        if db.is_file():
+            try:
+                con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5)
+                done = {r[0] for r in con.execute("SELECT slot FROM trials")}
+                started = [r[0] for r in con.execute(
+                    "SELECT e.slot FROM events e JOIN plan p ON p.slot = e.slot AND p.participant = e.participant "
+                    "AND p.session = e.session WHERE e.kind = 'started' AND p.task = ?", (task,))]
+                con.close()
+                running = [s for s in started if s not in done]
+                if len(done) >= min_done and running:
+                    return running[-1]
+            except sqlite3.OperationalError:
+                pass
+        time.sleep(0.02)
+    proc.kill()
+    pytest.fail("the study never reached a running trial")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
+def test_killed_in_a_trial_loses_at_most_that_trial_and_resumes(tmp_path, sig):
+    study_file = tmp_path / "small.toml"
+    study_file.write_text(SMALL)
+    data = tmp_path / "data"
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "study", "run", str(study_file), "--participant",
+                             "K1", "--data", str(data)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    running = _wait_mid_trial(proc, data / "study.sqlite", 4, "speaker-following")
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    store = StudyStore(data)
+    plan = store.plan("K1", 1)
+    done = sorted(store.finished_slots("K1", 1))
+    assert running not in done and len(done) >= 4
+    assert done == list(range(len(done)))  # in order, none lost before the running one
+    csv_path = data / "K1" / "session-1" / "trials.csv"
+    assert _csv_slots(csv_path, store, "K1", 1) == done  # every committed trial in the CSV exactly once
+    order = store.order("K1", 1)
+    if sig == signal.SIGTERM:  # a clean stop: one line, the running trial marked aborted
+        assert proc.returncode == 2 and err.strip().splitlines()[-1].startswith("sonicverse: error:"), err
+        assert "study resume" in err and "Traceback" not in err
+        assert any(e["kind"] == "aborted" and e["slot"] == running for e in store.events("K1", 1))
+    else:
+        assert proc.returncode == -signal.SIGKILL
+    # a second run refuses (unfinished), resume completes with no duplicate and the same order
+    r = _run("run", str(study_file), "--participant", "K1", "--data", str(data))
+    assert r.returncode == 2 and "study resume" in r.stderr
+    r = _run("resume", "--participant", "K1", "--data", str(data), "--json")
+    assert r.returncode == 0, r.stderr
+    store = StudyStore(data)
+    assert sorted(store.finished_slots("K1", 1)) == [s.slot for s in plan]
+    assert store.order("K1", 1) == order and store.plan("K1", 1) == plan
+    assert _csv_slots(csv_path, store, "K1", 1) == [s.slot for s in plan]
+    assert store.session("K1", 1)["status"] == "finished"
+    resumes = [e for e in store.events("K1", 1) if e["kind"] == "resume"]
+    assert len(resumes) == 1 and json.loads(resumes[0]["detail"])["first_slot"] == running
+
+
+def test_a_csv_behind_the_database_is_rewritten(tmp_path):
+    """A kill between the commit and the CSV append (or in the middle of a line) leaves the CSV behind: the next
+    run rewrites it from the database before going on."""
+    study = parse_study(SMALL)
+    store = StudyStore(tmp_path)
+    n = start_session(store, study, "P1")
+    for slot in store.plan("P1", n)[:3]:
+        store.commit_trial("P1", n, slot, "done", {"i": slot.slot}, {}, {}, "t", 0.0)
+    p = store.csv_path("P1", n)
+    text = p.read_text()
+    p.write_text(text[: len(text) - 20])  # the last line cut short
+    assert store.reconcile_csv("P1", n)
+    assert _csv_slots(p, store, "P1", n) == [0, 1, 2]
+    assert not store.reconcile_csv("P1", n)
+
+
+def test_hrtf_off_reaches_the_env_renderer():
+    from sonicverse_core.tasks import make_env
+
+    env = make_env("SpeakerFollowing", split="test", hrtf=False, reverb=False)
+    env.reset(seed=0)
+    assert env.renderer.cfg.output == "stereo" and env.renderer.hrtf is None
+    assert "late_reverb" not in env.renderer.subsystems
+    env.close()
