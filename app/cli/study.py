@@ -69,7 +69,7 @@ def cmd_study_resume(a) -> int:
     from app.study.store import StudyStore
     from sonicverse_core.errors import StudyError
 
-    store = StudyStore(a.data)
+    store = StudyStore(a.data, create=False)
     store.participant(a.participant)
     s = store.session(a.participant, a.session) if a.session else store.unfinished(a.participant)
     if s is None:
@@ -84,7 +84,7 @@ def cmd_study_resume(a) -> int:
 def cmd_study_export(a) -> int:
     from app.study.store import StudyStore
 
-    store = StudyStore(a.data)
+    store = StudyStore(a.data, create=False)
     if a.participant:
         store.participant(a.participant)
     keys = ("participant", "session", "block", "block_name", "trial", "condition", "task", "practice", "status",
@@ -109,7 +109,7 @@ def cmd_study_report(a) -> int:
     from app.study.report import write_report
     from app.study.store import StudyStore
 
-    store = StudyStore(a.data)
+    store = StudyStore(a.data, create=False)
     if a.participant:
         store.participant(a.participant)
     res = write_report(store, a.out, a.participant)

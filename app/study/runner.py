@@ -139,7 +139,7 @@ class StudyRunner:
         st.reconcile_csv(pid, n)
         plan, done = self.plan_state()
         todo = [s for s in plan if s.slot not in done]
-        if done:
+        if done or any(e["kind"] in ("started", "paused") for e in st.events(pid, n)):  # it ran before
             st.event(pid, n, "resume", json.dumps({"first_slot": todo[0].slot if todo else None,
                                                    "done": len(done)}))
         prev = max((s.block for s in plan if s.slot in done), default=None)
@@ -151,7 +151,8 @@ class StudyRunner:
                     st.event(pid, n, "paused", slot=slot.slot)
                     self.on_event("paused", {"slot": slot.slot})
                     self.controls.wait()
-                    st.event(pid, n, "resumed", slot=slot.slot)
+                    if not self.controls.abort_reason:
+                        st.event(pid, n, "continued", slot=slot.slot)
                 if self.controls.abort_reason:
                     raise TrialAborted(self.controls.abort_reason)
                 self._trial(slot, len(plan))

@@ -76,10 +76,12 @@ def _fsync_dir(path: Path) -> None:
 class StudyStore:
     """One data folder. Safe to use from several threads (a connection per thread)."""
 
-    def __init__(self, data_dir: str | Path = "study-data"):
+    def __init__(self, data_dir: str | Path = "study-data", create: bool = True):
         self.root = Path(data_dir)
         if self.root.exists() and not self.root.is_dir():
             raise StudyError(f"the data folder '{self.root}' is a file")
+        if not create and not (self.root / "study.sqlite").is_file():
+            raise StudyError(f"no study data in '{self.root}' (give the --data folder a study ran with)")
         self.root.mkdir(parents=True, exist_ok=True)
         self.path = self.root / "study.sqlite"
         self._local = threading.local()

@@ -1,0 +1,99 @@
+"""The launcher window driven as an operator would (Qt offscreen): create a participant, start a headless session
+with the simulated participant, pause, abort, resume, skip, notes; what it did is in the database exactly once."""
+import json
+
+import pytest
+
+from PyQt6 import QtCore, QtWidgets  # noqa: E402  (a missing PyQt6 fails here: it is a main dependency)
+from PyQt6.QtTest import QSignalSpy, QTest  # noqa: E402
+
+STUDY = """
+name = "window"
+seed = 5
+[conditions.a]
+hrtf = "on"
+[conditions.b]
+hrtf = "off"
+[[blocks]]
+name = "follow"
+task = "speaker-following"
+trials = 2
+agent = "scripted"
+[[blocks]]
+name = "turns"
+task = "orientation-training"
+trials = 2
+"""
+
+
+@pytest.fixture
+def app():
+    return QtWidgets.QApplication.instance() or QtWidgets.QApplication(["test"])
+
+
+def _wait_for(win, spy, kind: str, timeout_ms: int = 300_000) -> dict:
+    """Until the window's study signal says ``kind`` (event-driven: QSignalSpy.wait runs the event loop)."""
+    seen = 0
+    while True:
+        while seen < len(spy):
+            k, p = spy[seen]
+            seen += 1
+            if k == kind:
+                return p
+        assert spy.wait(timeout_ms), f"no '{kind}' event"
+
+
+def test_operator_session_pause_abort_resume(app, tmp_path):
+    from app.study.window import LauncherWindow
+
+    f = tmp_path / "study.toml"
+    f.write_text(STUDY)
+    win = LauncherWindow(tmp_path / "data", str(f))
+    win.show()
+    win.activateWindow()
+    assert QTest.qWaitForWindowActive(win, 10_000)  # keyboard shortcuts go to the active window
+    assert not win.start_btn.isEnabled()  # nobody picked yet
+    QTest.keyClicks(win.new_id, "W1")
+    QTest.keyClicks(win.identity, "Grace H.")
+    QTest.mouseClick(win.add_btn, QtCore.Qt.MouseButton.LeftButton)
+    assert win.current_participant() == "W1" and "->" in win.order.text()
+    win.new_id.setText("W1")
+    QTest.mouseClick(win.add_btn, QtCore.Qt.MouseButton.LeftButton)
+    assert "exists" in win.status.text()  # a repeated id is refused, nothing overwritten
+    assert [p["id"] for p in win.store.participants()] == ["W1"]
+
+    spy = QSignalSpy(win.studyEvent)
+    QTest.keyClick(win, QtCore.Qt.Key.Key_R, QtCore.Qt.KeyboardModifier.ControlModifier)  # start
+    assert win.session == 1 and not win.start_btn.isEnabled() and win.pause_btn.isEnabled()
+    QTest.keyClick(win, QtCore.Qt.Key.Key_P, QtCore.Qt.KeyboardModifier.ControlModifier)  # pause after this trial
+    paused = _wait_for(win, spy, "paused")
+    done_at_pause = win.store.finished_slots("W1", 1)
+    assert paused["slot"] == len(done_at_pause) < 8  # stopped at a trial boundary, before the end
+    assert win.table.rowCount() == len(done_at_pause)
+    QTest.mouseClick(win.abort_btn, QtCore.Qt.MouseButton.LeftButton)
+    ended = _wait_for(win, spy, "ended")
+    assert ended["status"] == "aborted" and "resume" in ended["reason"]
+    assert win.store.finished_slots("W1", 1) == done_at_pause  # nothing ran after the pause
+    assert win.store.unfinished("W1")["session"] == 1
+    assert win.resume_btn.isEnabled() and not win.start_btn.isEnabled()
+
+    win.note.setPlainText("participant asked for water")
+    QTest.mouseClick(win.note_btn, QtCore.Qt.MouseButton.LeftButton)
+
+    spy2 = QSignalSpy(win.studyEvent)
+    QTest.mouseClick(win.resume_btn, QtCore.Qt.MouseButton.LeftButton)
+    QTest.mouseClick(win.skip_btn, QtCore.Qt.MouseButton.LeftButton)  # skip the trial running (or the next)
+    ended = _wait_for(win, spy2, "ended")
+    assert ended["status"] == "finished", ended
+    st = win.store
+    rows = st.trials("W1", 1, status=None)
+    assert [r["slot"] for r in rows] == list(range(8))  # every slot exactly once, in order
+    assert sum(r["status"] == "skipped" for r in rows) == 1
+    assert win.table.rowCount() == 8 and win.progress.value() == 8
+    kinds = [e["kind"] for e in st.events("W1", 1)]
+    assert "paused" in kinds and "resume" in kinds and "note" in kinds
+    assert st.session("W1", 1)["status"] == "finished"
+    order = json.loads(st.session("W1", 1)["order_json"])
+    assert [r["condition"] for r in rows[:2]] == [order[0]] * 2  # the frozen order was kept through the resume
+    assert win.start_btn.isEnabled()  # the next session may start
+    win.close()
