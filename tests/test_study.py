@@ -278,3 +278,25 @@ def test_hrtf_off_reaches_the_env_renderer():
     assert env.renderer.cfg.output == "stereo" and env.renderer.hrtf is None
     assert "late_reverb" not in env.renderer.subsystems
     env.close()
+
+
+def test_a_person_trial_in_the_desktop_app_on_jack(tmp_path, jack, monkeypatch):
+    """A desktop session (Qt offscreen, live audio over JACK's dummy backend): the trial is a VR session whose
+    missed frames, xruns and output latency are its quality figures; a person who does not answer within the
+    block's time limit gives a no_response trial; the session's raw data is kept."""
+    monkeypatch.setenv("QT_QPA_PLATFORM", "offscreen")
+    f = tmp_path / "desk.toml"
+    f.write_text('name = "desk"\n[conditions.panner]\nhrtf = "off"\n[[blocks]]\ntask = "orientation-training"\n'
+                 'trials = 1\ntime_limit_s = 2\n')
+    data = tmp_path / "data"
+    r = _run("run", str(f), "--participant", "D1", "--backend", "desktop", "--data", str(data), "--json")
+    assert r.returncode == 0, r.stderr
+    store = StudyStore(data)
+    (t,) = store.trials("D1", 1, status=None)
+    assert t["status"] == "no_response"
+    q = t["quality"]
+    assert q["missed_frames"] is not None and q["xruns"] is not None and q["latency_ms"] > 0
+    raw = data / t["raw"]["session"]
+    assert (raw / "binaural.wav").is_file() and (raw / "input.svrec").is_file()
+    man = json.loads((data / "D1" / "session-1" / "manifest.json").read_text())
+    assert man["backend"] == "desktop" and man["devices"]["audio"] == "system default"

@@ -89,7 +89,7 @@ def cmd_study_export(a) -> int:
         store.participant(a.participant)
     keys = ("participant", "session", "block", "block_name", "trial", "condition", "task", "practice", "status",
             "metrics", "quality", "raw", "t_mono", "t_wall", "started_wall", "duration_s")
-    trials = [{k: t[k] for k in keys} for t in store.trials(a.participant)]
+    trials = [{k: t[k] for k in keys} for t in store.trials(a.participant, status=None)]
     out = {"trials": trials}
     if a.participant:
         out["sessions"] = [{k: s[k] for k in ("session", "study", "status", "backend", "created_wall",

@@ -194,7 +194,7 @@ class StudyRunner:
         self.on_event("trial_started", {**slot.as_dict(), "total": total})
         try:
             metrics, quality, raw = self.trials.run(slot, self.controls.check)
-            status = "done"
+            status = metrics.pop("_status", "done")  # or no_response: a person's trial that timed out
         except TrialSkipped:
             metrics, quality, raw, status = {}, {}, {}, "skipped"
         except (TrialAborted, KeyboardInterrupt, Interrupted) as exc:

@@ -26,6 +26,7 @@ simulated = { front_back = 0.35 }  # what the condition does to the simulated pa
 name = "orientation"
 task = "orientation-training"      # a task of the registry (`sonicverse task list`)
 trials = 4
+time_limit_s = 30                  # a person's trial in the VR app (default 60 s; robot tasks: the task's limit)
 practice = 1                       # practice trials before the block (recorded, flagged practice)
 mode = "turn"                      # orientation training: turn | walk
 per_condition = true               # one block per condition, in the participant's order
@@ -78,6 +79,7 @@ class Block:
     mode: str = "turn"
     difficulty: str = "duration"
     staircase: str = "1up2down"
+    time_limit_s: float | None = None  # a person's trial in the VR app (default: 60 s, robot tasks their own limit)
 
 
 @dataclass(frozen=True)
@@ -203,7 +205,11 @@ def parse_study(text: str, source: str = "<text>") -> Study:
         if not isinstance(b, dict):
             raise StudyError(f"{where} must be a table")
         _keys(b, ("name", "task", "trials", "practice", "per_condition", "condition", "agent", "mode", "difficulty",
-                  "staircase"), where)
+                  "staircase", "time_limit_s"), where)
+        limit = b.get("time_limit_s")
+        if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, float))
+                                  or not 1 <= limit <= 3600):
+            raise StudyError(f"{where}: 'time_limit_s' must be a number of seconds within 1..3600, got {limit!r}")
         task = b.get("task")
         if task not in by_cli:
             raise StudyError(f"{where}: 'task' must be one of {', '.join(by_cli)}, got {task!r}")
@@ -236,7 +242,8 @@ def parse_study(text: str, source: str = "<text>") -> Study:
         if stair not in ("1up2down", "1up3down", "none"):
             raise StudyError(f"{where}: 'staircase' must be 1up2down, 1up3down or none, got {stair!r}")
         blocks.append(Block(bname, task, _int(b, "trials", 1, 10_000, where), _int(b, "practice", 0, 1000, where, 0),
-                            per, cond, b.get("agent"), mode, difficulty, stair))
+                            per, cond, b.get("agent"), mode, difficulty, stair,
+                            None if limit is None else float(limit)))
     if len({b.name for b in blocks}) != len(blocks):
         raise StudyError(f"{source}: block names must differ")
     return Study(name, seed, cb, float(brk), quality, simulated, tuple(conditions), tuple(blocks), text,

@@ -141,15 +141,17 @@ class TrialRunner:
         cfg = SessionConfig(scene=scene, views=not audio_only, robots=0 if audio_only else 1, audio="live",
                             audio_device=self.audio_device, seed=slot.seed % (2**31), hrtf=cond.hrtf,
                             reverb=cond.reverb)
-        limit = 60.0 if audio_only else spec.max_steps * 0.1
+        limit = blk.time_limit_s or (60.0 if audio_only else spec.max_steps * 0.1)
         out = self.raw_dir / f"trial-{slot.slot:04d}"
         with VRSession(cfg, be, task=t) as sess:
             sess.run(frames=int(limit * be.target_hz))
             summ = sess.summary()
             sess.save(out)
         task = summ["task"]
-        metrics = _plain(task["rows"][0]) if audio_only and task.get("rows") else \
-            _plain({k: v for k, v in task.items() if k not in ("name", "rows")})
+        if audio_only:  # the one trial's row; none when the person did not answer within the limit
+            metrics = _plain(task["rows"][0]) if task.get("rows") else {"_status": "no_response"}
+        else:
+            metrics = _plain({k: v for k, v in task.items() if k not in ("name", "rows")})
         tele = summ.get("audio_telemetry", {})
         quality = {"missed_frames": summ.get("missed_frames"), "xruns": tele.get("xruns"),
                    "latency_ms": (tele.get("reported_latency_ms") or {}).get("output")}
