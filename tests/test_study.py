@@ -300,3 +300,12 @@ def test_a_person_trial_in_the_desktop_app_on_jack(tmp_path, jack, monkeypatch):
     assert (raw / "binaural.wav").is_file() and (raw / "input.svrec").is_file()
     man = json.loads((data / "D1" / "session-1" / "manifest.json").read_text())
     assert man["backend"] == "desktop" and man["devices"]["audio"] == "system default"
+
+
+def test_condition_options_reach_the_task(cli):
+    r = cli("task", "run", "orientation-training", "--trials", "2", "--hrtf", "off", "--reverb", "off", "--json")
+    assert r.returncode == 0, r.stderr
+    cfg = json.loads(r.stdout)["config"]
+    assert cfg["hrtf"] is False and cfg["reverb"] is False
+    r = cli("task", "run", "orientation-training", "--trials", "2", "--hrtf", "maybe")
+    assert r.returncode == 2 and "--hrtf" in r.stderr

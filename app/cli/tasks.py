@@ -11,7 +11,7 @@ def cmd_eval(a) -> int:
     from app.tasks.evaluate import run_eval
 
     csv_path = a.csv or f"out/eval/{a.task}_{a.agent}_{a.split}_{a.sounds}_s{a.seed}.csv"
-    kw = {"hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
+    kw = {}
     if a.homes is not None:
         kw["homes"] = a.homes
     if a.max_steps is not None:
@@ -89,7 +89,7 @@ def cmd_task_run(a) -> int:
         print(json.dumps(res) if a.json else "\n".join(f"{k:>26}: {v['mean']}" for k, v in res.items()
                                                        if isinstance(v, dict) and "mean" in v))
         return 0
-    kw = {}
+    kw = {"hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
     if a.homes is not None:
         kw["homes"] = a.homes
     if a.max_steps is not None:
