@@ -309,3 +309,27 @@ def test_condition_options_reach_the_task(cli):
     assert cfg["hrtf"] is False and cfg["reverb"] is False
     r = cli("task", "run", "orientation-training", "--trials", "2", "--hrtf", "maybe")
     assert r.returncode == 2 and "--hrtf" in r.stderr
+
+
+def test_a_trial_on_the_headset_backend(tmp_path, jack, monkeypatch):
+    """The study's openvr backend through fakes of OpenVR built from pyopenvr's types (no runtime can exist here):
+    the participant answers with the right controller's trigger; the trial is scored and its quality recorded."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fake_openvr import install
+
+    from app.vr.frame import BUTTON_TRIGGER
+
+    rig = install(monkeypatch)
+    for k in range(30, 600, 15):  # the trigger now and then, from the half second on
+        rig.buttons[(k, 2)] = int(BUTTON_TRIGGER)
+    study = parse_study('name = "hmd"\n[conditions.a]\n[[blocks]]\ntask = "orientation-training"\ntrials = 2\n'
+                        'time_limit_s = 5\n')
+    store = StudyStore(tmp_path)
+    n = start_session(store, study, "H1", backend="openvr", simulated=False)
+    StudyRunner(store, study, "H1", n, backend="openvr").run()
+    rows = store.trials("H1", n, status=None)
+    assert [r["status"] for r in rows] == ["done", "done"], rows
+    for r in rows:
+        assert 0 <= r["metrics"]["azimuth_error_deg"] <= 180 and r["metrics"]["response_time_s"] > 0
+        assert r["quality"]["latency_ms"] > 0 and r["quality"]["missed_frames"] is not None
+    assert rig.shutdowns == 2  # one VR session per trial, each closed

@@ -85,11 +85,13 @@ def cmd_task_run(a) -> int:
 
         res = run_in_vr(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, backend=a.backend, out=a.out,
                         trials=a.trials or 10, mode=a.mode if a.mode != "mixed" else "turn",
-                        hrtf=a.hrtf == "on", reverb=a.reverb == "on")
+                        hrtf=a.hrtf == "on", reverb=a.reverb == "on", scene=a.scene)
         print(json.dumps(res) if a.json else "\n".join(f"{k:>26}: {v['mean']}" for k, v in res.items()
                                                        if isinstance(v, dict) and "mean" in v))
         return 0
     kw = {"hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
+    if a.scene is not None:
+        kw["scenes"] = (a.scene,)
     if a.homes is not None:
         kw["homes"] = a.homes
     if a.max_steps is not None:
@@ -139,6 +141,7 @@ def add_task_commands(sub, bench_sub) -> None:
     tr.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")
     tr.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
     tr.add_argument("--homes", type=A.count(1, 1000), default=None, help="use the first N homes of the split")
+    tr.add_argument("--scene", default=None, metavar="SPEC", help="one home (a scene spec) instead of the split's")
     tr.add_argument("--max-steps", type=A.count(1, 100_000), default=None, help="episode length limit")
     tr.add_argument("--out", default=None, metavar="DIR", type=A.out_dir, help="write the CSV (and plots) here")
     tr.add_argument("--maps", default=None, metavar="DIR", type=A.out_dir,

@@ -144,7 +144,7 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
 def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str = "test", seed: int = 0,
               backend: str = "desktop", out: str | Path | None = None, trials: int = 10, mode: str = "turn",
               rate: float | None = None, size=None, max_seconds: float | None = None, hrtf: bool = True,
-              reverb: bool = True) -> dict:
+              reverb: bool = True, scene: str | None = None) -> dict:
     """``task run --backend desktop|openvr``: the task in the VR app with the user as the person, one session per
     episode (orientation training: one session of ``trials`` trials), each in a home of ``split`` and ending when
     the task does (or the user closes the window / quits, or after ``max_seconds``: the task's own limit). Returns
@@ -158,7 +158,7 @@ def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str
     spec = task_spec(task)
     if spec.frame_task is None:
         raise ConfigError(f"task '{spec.cli}' has no VR version")
-    scenes = homes(split)
+    scenes = [scene] if scene else homes(split)
     rows: list[dict] = []
     csv_path = Path(out) / f"{spec.cli}_{agent or spec.agents[0]}_{backend}_s{seed}.csv" if out else None
     n = 1 if spec.kind == "trials" else episodes
