@@ -97,3 +97,44 @@ def test_operator_session_pause_abort_resume(app, tmp_path):
     assert [r["condition"] for r in rows[:2]] == [order[0]] * 2  # the frozen order was kept through the resume
     assert win.start_btn.isEnabled()  # the next session may start
     win.close()
+
+
+AUDIO_CHECK = """
+import json, sys
+from PyQt6 import QtWidgets
+app = QtWidgets.QApplication([])
+from app.study.window import LauncherWindow
+win = LauncherWindow(sys.argv[1], "default")
+out = {"outputs": [win.out_dev.itemText(i) for i in range(win.out_dev.count())],
+       "inputs": [win.in_dev.itemText(i) for i in range(win.in_dev.count())]}
+win.test_tone()
+out["tone"] = win.status.text()
+win.mic_btn.setChecked(True)
+out["mic_open"] = win._mic is not None
+out["blocks"] = win.mic_heard.wait(20)
+win._tick()
+out["meter"] = win.meter.value()
+win.mic_btn.setChecked(False)
+out["mic_closed"] = win._mic is None
+win.close()
+print(json.dumps(out))
+"""
+
+
+def test_audio_checks_on_jack(tmp_path, jack):
+    """The set-up panel's audio checks on JACK's dummy backend (in a process of its own: PortAudio is initialised
+    there while the server runs): its devices are listed, the test tone plays, the microphone meter's stream
+    delivers blocks and reads silence as an empty meter, and closes."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    r = subprocess.run([sys.executable, "-c", AUDIO_CHECK, str(tmp_path / "d")], capture_output=True, text=True,
+                       timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert any("JACK" in d or "system" in d for d in out["outputs"][1:]), out
+    assert len(out["inputs"]) > 1
+    assert "440 Hz" in out["tone"], out
+    assert out["mic_open"] and out["blocks"] and out["mic_closed"]
+    assert out["meter"] == 0  # the dummy backend captures silence

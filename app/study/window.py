@@ -13,6 +13,7 @@ note.
 from __future__ import annotations
 
 import json
+import threading
 import time
 
 import numpy as np
@@ -71,6 +72,8 @@ class LauncherWindow(QtWidgets.QMainWindow):
         self.t0 = None
         self._mic = None
         self._level = 0.0
+        self.mic_blocks = 0  # blocks the level meter's stream has delivered
+        self.mic_heard = threading.Event()  # set once it has delivered some
         self.setWindowTitle(f"Sonicverse study launcher: {self.study.name}")
         self._build()
         self._refresh_participants()
@@ -261,8 +264,11 @@ class LauncherWindow(QtWidgets.QMainWindow):
         try:
             import sounddevice as sd
 
-            def cb(indata, frames, t, status):  # the PortAudio thread: one float written
+            def cb(indata, frames, t, status):  # the PortAudio thread: two numbers written
                 self._level = float(np.sqrt(np.mean(indata.astype(np.float64) ** 2)))
+                self.mic_blocks += 1
+                if self.mic_blocks >= 4:
+                    self.mic_heard.set()
 
             self._mic = sd.InputStream(device=self.in_dev.currentData(), channels=1, callback=cb)
             self._mic.start()
