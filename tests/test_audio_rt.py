@@ -154,8 +154,19 @@ def test_platform_probe_and_realtime_settings():
     from app.audio_rt.loopback import PlatformProbe
     from app.audio_rt.qos import LatencyRequest
 
-    res = PlatformProbe(1.0).result()
+    probe = PlatformProbe(1.0)
+    res = probe.result()
     assert "why" not in res, res  # rt-tests is a system dependency: missing, this fails
+    # every wake-up of every CPU, 1 ms apart: about 1,000 per CPU in a second
+    assert 0.8 * os.cpu_count() * 1000 <= res["wakeups"] == len(probe.samples) <= 1.1 * os.cpu_count() * 1000
+    assert 0 <= probe.samples[:, 0].min() and probe.samples[:, 0].max() <= 1.1
+    assert np.isclose(probe.samples[:, 1].max(), max(res["wakeup_ms_max"]))
+    # attribution, on samples made up: a 6 ms stall at 2.0 s (two wake-ups), a 1.5 ms one at 5.0 s
+    probe.samples = np.array([[t / 1000, 0.02] for t in range(8000)])
+    probe.samples[2000, 1], probe.samples[2001, 1], probe.samples[5000, 1] = 6.0, 5.5, 1.5
+    a = probe.attribute([2.05, 3.5, 5.01], period_ms=5.333)
+    assert a["xrun_platform_ms"] == [6.0, 0.02, 1.5] and a["xruns_in_platform_stalls"] == 2
+    assert a["platform_stalls"] == 2 and a["platform_stalls_over_period"] == 2
     assert len(res["wakeup_ms_max"]) == os.cpu_count() and all(0 < m < 1000 for m in res["wakeup_ms_max"])
     assert res["steal_ms"] is None or res["steal_ms"] >= 0
     assert keep_heap() and keep_heap()  # glibc here; idempotent

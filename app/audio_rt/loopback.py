@@ -43,21 +43,28 @@ def burst_lags(sent: np.ndarray, received: np.ndarray, first_frame: int, period:
 
 class PlatformProbe:
     """The machine's own scheduling noise over the measurement window, the reference an xrun count is read against:
-    the worst wake-up latency of a C thread at SCHED_FIFO 90 (rt-tests' cyclictest, 1 ms period on every CPU,
-    --laptop: it leaves the CPU idle states alone) and the CPU time the hypervisor stole (/proc/stat). Nothing of
-    ours runs above FIFO 90, so a wake-up latency longer than a period is the platform's (kernel or hypervisor),
-    not the pipeline's."""
+    the wake-up latency of a C thread at SCHED_FIFO 90 on every CPU, every millisecond (rt-tests' cyclictest,
+    --laptop: it leaves the CPU idle states alone; -v: every wake-up, written to a file so that nothing blocks it),
+    and the CPU time the hypervisor stole (/proc/stat). Nothing of ours runs above FIFO 90, so a wake-up latency
+    longer than a period is the platform's (kernel or hypervisor), not the pipeline's; :meth:`attribute` says which
+    xruns fell where the platform itself stalled for longer than an audio period."""
+
+    INTERVAL_US = 1000
 
     def __init__(self, seconds: float):
-        self.proc, self.why = None, None
+        import tempfile
+
+        self.proc, self.why, self.log = None, None, None
         exe = shutil.which("cyclictest")
         if exe is None:
             self.why = "cyclictest not found: install the Debian package rt-tests"
         else:
-            self.proc = subprocess.Popen([exe, "-m", "-p", "90", "-i", "1000", "-t", "-a", "-q", "--laptop",
-                                          "-D", str(int(np.ceil(seconds)))], stdout=subprocess.PIPE,
-                                         stderr=subprocess.STDOUT, text=True)
+            self.log = tempfile.TemporaryFile("w+")
+            self.proc = subprocess.Popen([exe, "-m", "-p", "90", "-i", str(self.INTERVAL_US), "-d", "0", "-t", "-a",
+                                          "-q", "--laptop", "-v", "-D", str(int(np.ceil(seconds)))],
+                                         stdout=self.log, stderr=subprocess.STDOUT, text=True)
         self.steal0 = self._steal()
+        self.samples = np.zeros((0, 2))  # (time s from the start, latency ms) of every wake-up, all CPUs
 
     @staticmethod
     def _steal() -> float | None:
@@ -74,18 +81,41 @@ class PlatformProbe:
                "wakeup_ms_max": None}
         if self.proc is not None:
             try:
-                text = self.proc.communicate(timeout=15)[0]
+                self.proc.wait(timeout=15)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
-                text = self.proc.communicate()[0]
-            mx = [int(m) for m in re.findall(r"Max:\s*(\d+)", text)]
-            if mx:
-                out["wakeup_ms_max"] = [round(m / 1000, 3) for m in mx]
+                self.proc.wait()
+            self.log.seek(0)
+            text = self.log.read()
+            self.log.close()
+            rows = re.findall(r"^\s*(\d+):\s*(\d+):\s*(\d+)\s*$", text, re.M)
+            if rows:
+                a = np.array(rows, dtype=np.int64)
+                self.samples = np.stack([a[:, 1] * self.INTERVAL_US / 1e6, a[:, 2] / 1000.0], 1)
+                out["wakeup_ms_max"] = [round(float(a[a[:, 0] == c, 2].max()) / 1000, 3)
+                                        for c in np.unique(a[:, 0])]
+                out["wakeups"] = int(len(a))
             else:
                 self.why = f"cyclictest gave no result: {text.strip().splitlines()[-1:] or self.proc.returncode}"
         if self.why:
             out["why"] = self.why
         return out
+
+    def attribute(self, xrun_at_s, period_ms: float, window_s: float = 0.1, stall_ms: float = 1.0) -> dict:
+        """For each xrun (seconds from the window's start) the longest platform wake-up latency within
+        ``window_s`` of it; the platform's stalls (wake-ups later than ``stall_ms``, 50 times a quiet machine's
+        20 us; a cluster within ``window_s`` counts once) and how many xruns fell in one (call after
+        :meth:`result`)."""
+        t, lat = self.samples[:, 0], self.samples[:, 1]
+        worst = []
+        for x in xrun_at_s:
+            near = lat[np.abs(t - x) <= window_s]
+            worst.append(round(float(near.max()), 3) if near.size else None)
+        st = np.sort(t[lat > stall_ms])
+        stalls = int(np.sum(np.diff(st) > window_s) + 1) if st.size else 0
+        return {"xrun_platform_ms": worst, "stall_ms": stall_ms, "platform_stalls": stalls,
+                "platform_stalls_over_period": int(np.sum(lat > period_ms)), "period_ms": round(period_ms, 3),
+                "xruns_in_platform_stalls": sum(1 for w in worst if w is not None and w > stall_ms)}
 
 
 def random_sources(spec: str | None, n: int, seed: int = 0, gain: float = 0.05):
@@ -170,6 +200,7 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
             t = t1 - t0
         tele = eng.telemetry()
         platform = probe.result()
+        platform.update(probe.attribute(tele["xrun_at_s"], tele["block_ms"]))
     finally:
         eng.stop()
         if vis is not None:

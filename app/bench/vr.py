@@ -202,6 +202,7 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False) -
                 s.frame()
             tel = s.audio.telemetry()
             platform = probe.result()
+            platform.update(probe.attribute(tel["xrun_at_s"], tel["block_ms"]))
             r = s.summary()
         extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}
         return {**extra, "seconds": seconds, "loop_fps": r["fps"], "xruns": tel["xruns"], "xrun_at_s": tel["xrun_at_s"],
