@@ -42,6 +42,13 @@ def cmd_bench_env(a) -> int:
     return 0
 
 
+def cmd_bench_camera(a) -> int:
+    from app.bench.camera import bench_camera
+
+    print(json.dumps(bench_camera(a.scene, a.size, a.frames, a.seed)))
+    return 0
+
+
 def cmd_train_recogniser(a) -> int:
     from agents.voice import WEIGHTS, train
 
@@ -223,3 +230,13 @@ def add_task_commands(sub, bench_sub) -> None:
     b.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")
     b.add_argument("--json", action="store_true", help="(always JSON)")
     b.set_defaults(func=cmd_bench_env)
+
+    bc = bench_sub.add_parser("camera", help="ms per frame of the robot camera's outputs: depth, RGB-D, semantic",
+                              description="The robot's camera (depth, RGB-D, the semantic camera's category and "
+                              "instance ids, RGB-D + semantic) over the same poses in one run, as ratios to depth.")
+    bc.add_argument("--scene", default="builtin:apartment", help="scene spec (default: %(default)s)")
+    bc.add_argument("--size", type=A.count(16, 2048), default=128, help="width = height (default: %(default)s)")
+    bc.add_argument("--frames", type=A.count(10, 100_000), default=100, help="poses (default: %(default)s)")
+    bc.add_argument("--seed", type=A.seed, default=0, help="seed of the poses (default: %(default)s)")
+    bc.add_argument("--json", action="store_true", help="(always JSON)")
+    bc.set_defaults(func=cmd_bench_camera)

@@ -36,6 +36,69 @@ def camera_matrix(x, y, z, yaw, pitch=0.0) -> np.ndarray:
     return m
 
 
+def id_colour(i) -> np.ndarray:
+    """Instance id(s) -> RGBA uint8 (24 bits of id in R, G, B; alpha 255); 0 is nothing."""
+    i = np.asarray(i, np.int64)
+    return np.stack([i & 255, (i >> 8) & 255, (i >> 16) & 255, np.full_like(i, 255)], -1).astype(np.uint8)
+
+
+def decode_ids(rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 of an id render -> (H, W) int32 instance ids."""
+    c = rgb.astype(np.int32)
+    return c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16)
+
+
+def part_category(name: str) -> str:
+    """A structure part's semantic category from its name: trailing numbers dropped ('wall_2_1' -> 'wall',
+    'Window.003' -> 'window'), the first word kept ('floor bathroom' -> 'floor'); lower case."""
+    import re
+
+    if re.fullmatch(r"[xy][01]", name):  # a shoebox's walls
+        return "wall"
+    base = re.sub(r"([_.\-\s]*\d+)+$", "", name).strip().lower()
+    return base.split()[0] if base else "structure"  # 'floor bathroom' -> 'floor'
+
+
+
+#: category ids the same in every scene (an agent learns them once): 0 is nothing; a scene's other categories
+#: (a mesh scene's part names) follow in sorted order, and an actor's new category after them
+CLASSES = ("", "wall", "floor", "ceiling", "window", "door", "threshold", "person", "robot",
+           "straight_chair", "breakfast_table", "picture", "bottom_cabinet", "cushion", "sofa", "bed", "shelf",
+           "sink", "toilet", "stool", "standing_tv", "shower", "bathtub", "countertop")
+
+
+class SemanticLabels:
+    """Instance and category ids of a scene's semantic camera. Instances: 0 nothing, 1..N the scene's objects (in
+    order), then the static structure's parts, then actors (bodies not in the scene, e.g. the person) as they are
+    added. Categories: :data:`CLASSES` first (fixed ids), then the scene's other categories in sorted order;
+    ``categories[k]`` names category k, ``instances[i]`` is (name, category) of instance i."""
+
+    def __init__(self, scene):
+        sm = scene.static_mesh()
+        self.instances = [("", "")] + [(o.name, o.category) for o in scene.objects] + \
+            [(p, part_category(p)) for p in sm.part_names]
+        self.categories = list(CLASSES) + sorted({c for _, c in self.instances[1:]} - set(CLASSES))
+        self._refresh()
+
+    def _refresh(self) -> None:
+        for _, c in self.instances[1:]:  # a new category (an actor's) is appended: the others keep their ids
+            if c not in self.categories:
+                self.categories.append(c)
+        idx = {c: k for k, c in enumerate(self.categories)}
+        self.lut = np.array([idx[c] for _, c in self.instances], np.int32)
+
+    def add_actor(self, name: str, category: str) -> int:
+        for i, (n, _) in enumerate(self.instances):
+            if n == name and i > 0:
+                return i
+        self.instances.append((name, category))
+        self._refresh()
+        return len(self.instances) - 1
+
+    def category_id(self, name: str) -> int:
+        return self.categories.index(name)
+
+
 class RenderScene:
     """The pyrender scene of a core scene, drawn in as few primitives as possible (pyrender spends ~0.3 ms of
     Python per primitive and frame): the static structure and every object still at its initial pose are one
@@ -48,13 +111,18 @@ class RenderScene:
     UNLOAD_AFTER = 90
 
     def __init__(self, scene, bg=(0.55, 0.6, 0.7, 1.0), merge: bool = True, face_shading=None,
-                 rooms: bool = False):
+                 rooms: bool = False, ids: bool = False):
         import pyrender
 
         from sonicverse_core.scene.materials import MATERIAL_INDEX
 
         self.core = scene
         self.merge = merge
+        # ids: every face coloured by its instance id (24 bits in RGB) for the semantic camera, drawn unlit
+        self.ids = ids
+        if ids:
+            bg = (0.0, 0.0, 0.0, 1.0)
+            face_shading = None
         # the merged mesh split by room (``show`` loads what a viewer may see); one group (None) otherwise
         if rooms and scene.rooms:
             from sonicverse_core.scene.visibility import object_room, room_faces
@@ -73,6 +141,8 @@ class RenderScene:
         cats = sorted({o.category for o in scene.objects})
         cpal = palette(len(cats), seed=11)
         self._obj_colour = {o.name: cpal[cats.index(o.category)] for o in scene.objects}
+        if ids:
+            self._obj_colour = {o.name: id_colour(i + 1) for i, o in enumerate(scene.objects)}
         self._rest = {o.name: o.pose.copy() for o in scene.objects}
         self.nodes: dict = {}  # object name -> node of its own
         self._batched: set[str] = set()
@@ -80,7 +150,8 @@ class RenderScene:
         self._build_batch(exclude=set(own))
         for name in own:
             self._own_node(name)
-        self.scene.add(pyrender.DirectionalLight(intensity=3.0), pose=camera_matrix(0, 0, 0, 30, -60))
+        if not ids:
+            self.scene.add(pyrender.DirectionalLight(intensity=3.0), pose=camera_matrix(0, 0, 0, 30, -60))
         self._version = scene.dynamic_version
 
     def _build_batch(self, exclude: set) -> None:
@@ -102,7 +173,8 @@ class RenderScene:
                 used, inv = np.unique(sm.faces[fidx], return_inverse=True)
                 verts.append(sm.vertices[used])
                 faces.append(inv.reshape(-1, 3))
-                cols.append(self._mat_pal[sm.face_material[fidx]])
+                cols.append(id_colour(len(self.core.objects) + 1 + sm.face_part[fidx]) if self.ids
+                            else self._mat_pal[sm.face_material[fidx]])
                 off = len(used)
             for o in self.core.objects:
                 if o.name in self._batched and self._obj_group[o.name] == g:
@@ -175,22 +247,24 @@ class RenderScene:
 
 class RGBDCamera:
     """A pinhole camera in a core scene. ``render(x, y, z, yaw)`` -> {'rgb': (H, W, 3) uint8, 'depth': (H, W)
-    float32 m}; only the images asked for are rendered (depth-only is about twice as fast)."""
+    float32 m, and with ``semantic``: 'semantic' (H, W) int32 category ids and 'instance' (H, W) int32 instance
+    ids (``labels``: :class:`SemanticLabels`)}; only the images asked for are rendered (depth-only is about twice
+    as fast; the semantic images are one more unlit pass over a twin scene coloured by instance id)."""
 
     def __init__(self, scene, width: int = 128, height: int = 128, hfov_deg: float = 90.0, depth_min: float = 0.0,
-                 depth_max: float = 10.0, rgb: bool = True, depth: bool = True):
+                 depth_max: float = 10.0, rgb: bool = True, depth: bool = True, semantic: bool = False):
         if not (8 <= width <= 4096 and 8 <= height <= 4096):
             raise ConfigError(f"camera size must be 8-4096 pixels, got {width}x{height}")
         if not (10 <= hfov_deg <= 170):
             raise ConfigError(f"camera field of view must be 10-170 degrees, got {hfov_deg}")
         if not (0 <= depth_min < depth_max <= 100):
             raise ConfigError(f"need 0 <= depth_min < depth_max <= 100 m, got {depth_min}, {depth_max}")
-        if not (rgb or depth):
-            raise ConfigError("a camera needs rgb, depth or both")
+        if not (rgb or depth or semantic):
+            raise ConfigError("a camera needs rgb, depth or semantic")
         import pyrender
 
         self.width, self.height = width, height
-        self.want_rgb, self.want_depth = rgb, depth
+        self.want_rgb, self.want_depth, self.want_semantic = rgb, depth, semantic
         self.depth_min, self.depth_max = float(depth_min), float(depth_max)
         yfov = 2 * np.arctan(np.tan(np.radians(hfov_deg) / 2) * height / width)
         self.camera = pyrender.PerspectiveCamera(yfov=yfov, znear=0.05, zfar=max(50.0, depth_max * 1.5),
@@ -209,43 +283,75 @@ class RGBDCamera:
         self.scene = self.rs.scene
         self.cam_node = self.scene.add(self.camera, pose=np.eye(4))
         self._actors: dict[str, tuple] = {}
+        self.ids_rs = self.labels = None
+        if self.want_semantic:
+            self.ids_rs = RenderScene(scene, ids=True)
+            self.labels = SemanticLabels(scene)
+            self.ids_cam = self.ids_rs.scene.add(self.camera, pose=np.eye(4))
 
     # --- actors: bodies that are not part of the core scene (a person), seen but not heard as geometry ------------
-    def set_actor(self, name: str, mesh, rgba=(200, 120, 90, 255)) -> None:
-        """Show ``mesh`` (a trimesh in its local frame) as actor ``name`` (the same mesh again: nothing to do)."""
+    def set_actor(self, name: str, mesh, rgba=(200, 120, 90, 255), category: str | None = None) -> None:
+        """Show ``mesh`` (a trimesh in its local frame) as actor ``name`` (the same mesh again: nothing to do);
+        its semantic category is ``category`` (default: its name without trailing numbers)."""
         import pyrender
 
         held = self._actors.get(name)
         if held is not None and held[0] is mesh:
             return
         if held is not None:
-            self.scene.remove_node(held[1])
+            self._remove_actor(held)
         tm = mesh.copy()
         tm.visual.face_colors = np.tile(np.asarray(rgba, np.uint8), (len(tm.faces), 1))
-        self._actors[name] = (mesh, self.scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False), pose=np.eye(4)))
+        nodes = [self.scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False), pose=np.eye(4))]
+        if self.ids_rs is not None:
+            i = self.labels.add_actor(name, category or part_category(name))
+            tid = mesh.copy()
+            tid.visual.face_colors = np.tile(id_colour(i), (len(tid.faces), 1))
+            nodes.append(self.ids_rs.scene.add(pyrender.Mesh.from_trimesh(tid, smooth=False), pose=np.eye(4)))
+        self._actors[name] = (mesh, nodes)
+
+    def _remove_actor(self, held) -> None:
+        self.scene.remove_node(held[1][0])
+        if len(held[1]) > 1:
+            self.ids_rs.scene.remove_node(held[1][1])
 
     def move_actor(self, name: str, pose: np.ndarray) -> None:
-        self.scene.set_pose(self._actors[name][1], np.asarray(pose, float))
+        nodes = self._actors[name][1]
+        self.scene.set_pose(nodes[0], np.asarray(pose, float))
+        if len(nodes) > 1:
+            self.ids_rs.scene.set_pose(nodes[1], np.asarray(pose, float))
 
     def clear_actors(self) -> None:
-        for _, node in self._actors.values():
-            self.scene.remove_node(node)
+        for held in self._actors.values():
+            self._remove_actor(held)
         self._actors = {}
 
     def render(self, x, y, z, yaw, pitch=0.0) -> dict:
-        self.rs.sync()
-        self.scene.set_pose(self.cam_node, camera_matrix(x, y, z, yaw, pitch))
-        res = self.renderer.render(self.scene, flags=self._flags)
+        import pyrender
+
         out = {}
-        if self.want_rgb:
-            color, depth = res
-            out["rgb"] = np.ascontiguousarray(color[..., :3])
-        else:
-            depth = res
-        if self.want_depth:
-            d = np.asarray(depth, np.float32)
-            d = np.where((d < self.depth_min) | (d > self.depth_max), np.float32(0), d)
-            out["depth"] = d
+        pose = camera_matrix(x, y, z, yaw, pitch)
+        if self.want_rgb or self.want_depth:
+            self.rs.sync()
+            self.scene.set_pose(self.cam_node, pose)
+            res = self.renderer.render(self.scene, flags=self._flags)
+            if self.want_rgb:
+                color, depth = res
+                out["rgb"] = np.ascontiguousarray(color[..., :3])
+            else:
+                depth = res
+            if self.want_depth:
+                d = np.asarray(depth, np.float32)
+                d = np.where((d < self.depth_min) | (d > self.depth_max), np.float32(0), d)
+                out["depth"] = d
+        if self.want_semantic:
+            self.ids_rs.sync()
+            self.ids_rs.scene.set_pose(self.ids_cam, pose)
+            color, _ = self.renderer.render(self.ids_rs.scene, flags=pyrender.RenderFlags.FLAT)
+            inst = decode_ids(color[..., :3])
+            inst[inst >= len(self.labels.lut)] = 0
+            out["instance"] = inst
+            out["semantic"] = self.labels.lut[inst]
         return out
 
     def close(self) -> None:

@@ -34,7 +34,7 @@ from sonicverse_core.errors import ConfigError
 from sonicverse_core.tasks.episodes import DEFAULT_HOMES, SOUND_SECONDS, homes
 from sonicverse_core.world.robot import wheel_action
 
-ALL_SENSORS = ("rgb", "depth", "audio", "spectrogram", "bump", "pose", "pointgoal")
+ALL_SENSORS = ("rgb", "depth", "semantic", "audio", "spectrogram", "bump", "pose", "pointgoal")
 
 
 @dataclass(frozen=True)
@@ -297,6 +297,8 @@ class TaskEnv(gym.Env):
             obs["rgb"] = spaces.Box(0, 255, (H, W, 3), np.uint8)
         if "depth" in self.sensors:
             obs["depth"] = spaces.Box(0.0, cfg.depth_max, (H, W, 1), np.float32)
+        if "semantic" in self.sensors:  # category ids (sonicverse_core.sensors.camera.CLASSES first, fixed)
+            obs["semantic"] = spaces.Box(0, 65535, (H, W, 1), np.int32)
         if "audio" in self.sensors:
             obs["audio"] = spaces.Box(-1.0, 1.0, (2, self.spb), np.float32)
         if "spectrogram" in self.sensors:
@@ -380,7 +382,7 @@ class TaskEnv(gym.Env):
             c = self.cfg
             self.camera = RGBDCamera(self.home.scene, c.width, c.height, c.hfov, c.depth_min, c.depth_max,
                                      rgb="rgb" in self.sensors or self.render_mode == "rgb_array",
-                                     depth="depth" in self.sensors)
+                                     depth="depth" in self.sensors, semantic="semantic" in self.sensors)
         self.camera.set_scene(self.home.scene)
         for name, (mesh, rgba, pose) in self._actors.items():
             self.camera.set_actor(name, mesh, rgba)
@@ -413,12 +415,14 @@ class TaskEnv(gym.Env):
             obs["audio"] = block.copy()
         if "spectrogram" in self.sensors:
             obs["spectrogram"] = self._spec(self._window.buf) if self._window is not None else self._spec.push(block)
-        if "rgb" in self.sensors or "depth" in self.sensors:
+        if "rgb" in self.sensors or "depth" in self.sensors or "semantic" in self.sensors:
             img = self._camera().render(*w.camera)
             if "rgb" in self.sensors:
                 obs["rgb"] = img["rgb"]
             if "depth" in self.sensors:
                 obs["depth"] = img["depth"][..., None]
+            if "semantic" in self.sensors:
+                obs["semantic"] = img["semantic"][..., None]
         if "bump" in self.sensors:
             obs["bump"] = np.array([1.0 if w.bumped else 0.0], np.float32)
         sn = self.cfg.pose_noise
