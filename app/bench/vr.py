@@ -80,12 +80,15 @@ def bench_vr(sizes, frames: int = 60, scene: str = "builtin:apartment", audio_se
 def densify(scene, levels: int) -> None:
     """Subdivide every mesh of a scene ``levels`` times (x4 triangles each): the procedural home standing in for a
     scanned house of as many triangles (same rooms, same pixels)."""
+    from dataclasses import replace
+
     for _ in range(levels):
         for p in scene.static:
             p.mesh = p.mesh.subdivide()
         for o in scene.objects:
             o.mesh = o.mesh.subdivide()
-    scene._static_mesh, scene._dynamic_cache, scene._world_cache = None, None, {}
+            o.parts = tuple(replace(p, mesh=p.mesh.subdivide()) for p in o.parts)
+    scene._static_mesh, scene._dynamic_cache, scene._world_cache = None, {}, {}
 
 
 def room_culling(scene: str, size=(512, 512), poses: int = 40, reps: int = 3, seed: int = 0,

@@ -55,7 +55,7 @@ class NavGrid:
 
         self.scene = scene
         self.config = config
-        self.caster = caster or SceneRayCaster(scene)
+        self.caster = caster or SceneRayCaster(scene, proxies=True)  # objects as their proxies
         self.z_floor = scene.floor_z if z_floor is None else float(z_floor)
         c = config.cell
         lo, hi = scene.bounds[0, :2], scene.bounds[1, :2]
@@ -124,7 +124,7 @@ class NavGrid:
         c, cfg = self.config.cell, self.config
         out = np.zeros(self.shape, dtype=bool)
         zlo, zhi = self.z_floor + cfg.max_step, self.z_floor + cfg.robot_height
-        for mesh in (scene.static_mesh(), scene.dynamic_mesh()):
+        for mesh in (scene.static_mesh(), scene.dynamic_mesh(proxies=True)):
             if len(mesh) == 0:
                 continue
             tri = mesh.vertices[mesh.faces]

@@ -136,16 +136,17 @@ class SceneRayCaster:
     ``include_dynamic=False`` casts against the static structure only (what reverb probes are baked over).
     """
 
-    def __init__(self, scene: Scene, backend: str = "embree"):
+    def __init__(self, scene: Scene, backend: str = "embree", proxies: bool = False):
         self.scene = scene
         self.backend = backend
+        self.proxies = proxies  # objects as their simple proxies (navigation), not their parts
         self.static = RayCaster(scene.static_mesh(), backend)
         self._dyn: tuple[int, RayCaster] | None = None
 
     @property
     def dynamic(self) -> RayCaster:
         if self._dyn is None or self._dyn[0] != self.scene.dynamic_version:
-            self._dyn = (self.scene.dynamic_version, RayCaster(self.scene.dynamic_mesh(), self.backend))
+            self._dyn = (self.scene.dynamic_version, RayCaster(self.scene.dynamic_mesh(self.proxies), self.backend))
         return self._dyn[1]
 
     def part_offset(self) -> int:
@@ -155,7 +156,7 @@ class SceneRayCaster:
     def part_name(self, part: int) -> str:
         off = self.part_offset()
         return self.scene.static_mesh().part_names[part] if part < off else \
-            self.scene.dynamic_mesh().part_names[part - off]
+            self.scene.dynamic_mesh(self.proxies).part_names[part - off]
 
     def first_hit(self, origins, directions, max_distance=np.inf, include_dynamic: bool = True) -> Hits:
         h = self.static.first_hit(origins, directions, max_distance)

@@ -19,6 +19,7 @@ import numpy as np
 import trimesh
 
 from sonicverse_core.errors import SceneSpecError
+from sonicverse_core.scene import furniture
 from sonicverse_core.scene.mapping import MAPPINGS, CategoryMapping
 from sonicverse_core.scene.model import Door, Room, Scene, SceneObject, StaticPart, StructureKind, yaw_pose
 
@@ -483,7 +484,7 @@ def _try_place(rng, room, inner, placed, free, cat, w, d, h, how, required):
     return ok
 
 
-def _object_for(p: Placed, index: int, mapping: CategoryMapping) -> SceneObject:
+def _object_for(p: Placed, index: int, mapping: CategoryMapping, rng: np.random.Generator) -> SceneObject:
     cx, cy = (p.rect.x0 + p.rect.x1) / 2, (p.rect.y0 + p.rect.y1) / 2
     if abs(p.yaw) == 90.0:
         w, d = p.rect.h, p.rect.w
@@ -492,7 +493,14 @@ def _object_for(p: Placed, index: int, mapping: CategoryMapping) -> SceneObject:
     mesh = box((-w / 2, -d / 2, 0.0), (w / 2, d / 2, p.h))
     movable = p.category in ("cushion", "stool", "straight_chair", "picture")
     return SceneObject(f"{p.category}_{index}", p.category, mapping.material_for(p.category), mesh,
-                       yaw_pose(cx, cy, p.z0, p.yaw), movable=movable, room=p.room)
+                       yaw_pose(cx, cy, p.z0, p.yaw), movable=movable, room=p.room,
+                       parts=furniture.build(p.category, w, d, p.h, rng))
+
+
+def _look_rng(seed: int, category: str, index: int) -> np.random.Generator:
+    """The Generator of an object's look (style, proportions, colours): its own stream, so the layout's draws (and
+    every home's plan) do not change with the furniture builders."""
+    return np.random.default_rng([seed, 0x100C, sum(map(ord, category)), index])
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -547,7 +555,9 @@ def generate_apartment(seed: int = 0, mapping: CategoryMapping | None = None, sp
         leaf = box((0.0, -0.02, FURNITURE_LIFT), (DOOR_LEAF, 0.02, 2.02))
         doors.append(Door(f"door_{i}", "door", mapping.material_for("door"), leaf, movable=False,
                           hinge=d["hinge"], closed_yaw=d["closed_yaw"], swing=d["swing"], open_fraction=1.0,
-                          rooms=d["rooms"], width=DOOR_LEAF))
+                          rooms=d["rooms"], width=DOOR_LEAF,
+                          parts=tuple(furniture.door(DOOR_LEAF, 0.04, 2.02, _look_rng(seed, "door", i),
+                                                     z0=FURNITURE_LIFT))))
     placed: list[Placed] = []
     for r in plans:
         placed.extend(_furnish(rng, r))
@@ -556,7 +566,8 @@ def generate_apartment(seed: int = 0, mapping: CategoryMapping | None = None, sp
         counts: dict[str, int] = {}
         objs = []
         for p in items:
-            objs.append(_object_for(p, counts.get(p.category, 0), mapping))
+            k = counts.get(p.category, 0)
+            objs.append(_object_for(p, k, mapping, _look_rng(seed, p.category, k)))
             counts[p.category] = counts.get(p.category, 0) + 1
         return Scene(f"apartment {seed}", static, doors + objs, rooms, spec=spec or f"builtin:apartment?seed={seed}",
                      mapping_name=mapping.name, metadata={"seed": seed, "split": split_of(seed),

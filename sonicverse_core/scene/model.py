@@ -62,7 +62,12 @@ def yaw_pose(x: float, y: float, z: float, yaw_deg: float) -> np.ndarray:
 
 @dataclass
 class SceneObject:
-    """A dynamic object: mesh in its local frame (z up, base at z=0), a world pose, semantics and material."""
+    """A dynamic object: mesh in its local frame (z up, base at z=0), a world pose, semantics and material.
+
+    ``mesh`` is the object's simple proxy (collision, navigation, footprints); ``parts`` (optional,
+    :class:`sonicverse_core.scene.furniture.ObjectPart`: name, material or None for the object's own, mesh in the
+    same local frame, colour) are what the cameras see and the acoustic engine hears; without parts the proxy is
+    both."""
 
     name: str
     category: str
@@ -71,11 +76,31 @@ class SceneObject:
     pose: np.ndarray = field(default_factory=lambda: np.eye(4))
     movable: bool = False
     room: str | None = None
+    parts: tuple = ()
 
     def __post_init__(self):
         get_material(self.material)
         check_mesh(self.mesh, self.name)
+        for p in self.parts:
+            if p.material is not None:
+                get_material(p.material)
+            check_mesh(p.mesh, f"{self.name}/{p.name}")
         self.pose = np.asarray(self.pose, dtype=float)
+
+    def looks(self) -> list[tuple]:
+        """(part name, material, local mesh, RGBA or None) of what is seen and heard: the parts, or the proxy."""
+        if not self.parts:
+            return [(self.category, self.material, self.mesh, None)]
+        return [(p.name, p.material or self.material, p.mesh, p.colour) for p in self.parts]
+
+    def world_looks(self) -> list[tuple]:
+        """(material, world mesh) per part."""
+        out = []
+        for _, mat, mesh, _ in self.looks():
+            m = mesh.copy()
+            m.apply_transform(self.pose)
+            out.append((mat, m))
+        return out
 
     def set_pose(self, pose: np.ndarray) -> None:
         pose = np.asarray(pose, dtype=float)
@@ -228,8 +253,8 @@ class Scene:
         self.metadata = dict(metadata or {})
         self.dynamic_version = 0
         self._static_mesh: SceneMesh | None = None
-        self._dynamic_cache: tuple[int, SceneMesh] | None = None
-        self._world_cache: dict[str, tuple[bytes, trimesh.Trimesh]] = {}
+        self._dynamic_cache: dict = {}  # "looks" | "proxy" -> (dynamic_version, SceneMesh)
+        self._world_cache: dict = {}  # (kind, object name) -> (pose bytes, [(material, world mesh)])
         names = [o.name for o in self.objects]
         if len(set(names)) != len(names):
             raise MeshError(f"scene '{name}': object names must be unique")
@@ -268,18 +293,23 @@ class Scene:
             self._static_mesh = SceneMesh.from_parts([(p.name, p.material, p.mesh) for p in self.static])
         return self._static_mesh
 
-    def dynamic_mesh(self) -> SceneMesh:
-        if self._dynamic_cache is None or self._dynamic_cache[0] != self.dynamic_version:
+    def dynamic_mesh(self, proxies: bool = False) -> SceneMesh:
+        """The objects in their current poses: what is seen and heard (their parts), or with ``proxies`` their
+        simple proxies (collision and navigation). Every face is named by its object."""
+        key = "proxy" if proxies else "looks"
+        cache = self._dynamic_cache
+        hit = cache.get(key)
+        if hit is None or hit[0] != self.dynamic_version:
             parts = []
             for o in self.objects:  # only objects that moved are transformed again (a door swinging: one)
-                key = o.pose.tobytes()
-                hit = self._world_cache.get(o.name)
-                if hit is None or hit[0] != key:
-                    hit = self._world_cache[o.name] = (key, o.world_mesh())
-                parts.append((o.name, o.material, hit[1]))
-            mesh = SceneMesh.from_parts(parts)
-            self._dynamic_cache = (self.dynamic_version, mesh)
-        return self._dynamic_cache[1]
+                pose = o.pose.tobytes()
+                w = self._world_cache.get((key, o.name))
+                if w is None or w[0] != pose:
+                    w = self._world_cache[(key, o.name)] = (pose, [(o.material, o.world_mesh())] if proxies
+                                                            else o.world_looks())
+                parts += [(o.name, mat, m) for mat, m in w[1]]
+            hit = cache[key] = (self.dynamic_version, SceneMesh.from_parts(parts))
+        return hit[1]
 
     @property
     def bounds(self) -> np.ndarray:
@@ -307,7 +337,7 @@ class Scene:
 
     @property
     def triangle_count(self) -> int:
-        return len(self.static_mesh()) + sum(len(o.mesh.faces) for o in self.objects)
+        return len(self.static_mesh()) + sum(sum(len(m.faces) for _, _, m, _ in o.looks()) for o in self.objects)
 
     def room_at(self, xy) -> Room | None:
         for r in self.rooms:

@@ -60,6 +60,10 @@ def part_category(name: str) -> str:
 
 
 
+#: colours of the structure by part category (a home's paint, ceiling, floor, windows)
+STRUCTURE_COLOURS = {"wall": (228, 221, 207, 255), "ceiling": (246, 246, 243, 255), "floor": (168, 126, 86, 255),
+                     "threshold": (150, 110, 76, 255), "window": (176, 208, 232, 255)}
+
 #: category ids the same in every scene (an agent learns them once): 0 is nothing; a scene's other categories
 #: (a mesh scene's part names) follow in sorted order, and an actor's new category after them
 CLASSES = ("", "wall", "floor", "ceiling", "window", "door", "threshold", "person", "robot",
@@ -145,6 +149,7 @@ class RenderScene:
             self._obj_colour = {o.name: id_colour(i + 1) for i, o in enumerate(scene.objects)}
         self._rest = {o.name: o.pose.copy() for o in scene.objects}
         self.nodes: dict = {}  # object name -> node of its own
+        self._local: dict = {}  # object name -> (its first part's mesh, all its parts as one local mesh)
         self._batched: set[str] = set()
         own = [] if merge else [o.name for o in scene.objects]
         self._build_batch(exclude=set(own))
@@ -174,15 +179,15 @@ class RenderScene:
                 verts.append(sm.vertices[used])
                 faces.append(inv.reshape(-1, 3))
                 cols.append(id_colour(len(self.core.objects) + 1 + sm.face_part[fidx]) if self.ids
-                            else self._mat_pal[sm.face_material[fidx]])
+                            else self._static_colours()[fidx])
                 off = len(used)
             for o in self.core.objects:
                 if o.name in self._batched and self._obj_group[o.name] == g:
-                    v = o.mesh.vertices @ o.pose[:3, :3].T + o.pose[:3, 3]
-                    verts.append(v)
-                    faces.append(o.mesh.faces + off)
-                    cols.append(np.tile(self._obj_colour[o.name], (len(o.mesh.faces), 1)))
-                    off += len(v)
+                    m, c = self._object_mesh(o)
+                    verts.append(m.vertices @ o.pose[:3, :3].T + o.pose[:3, 3])
+                    faces.append(m.faces + off)
+                    cols.append(c)
+                    off += len(m.vertices)
             if not faces:
                 continue
             tm = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
@@ -220,12 +225,46 @@ class RenderScene:
         """Triangles of the merged groups now in the GL context (objects with nodes of their own not counted)."""
         return sum(self.group_triangles[g] for g, n in self.group_nodes.items() if self.scene.has_node(n))
 
+    def _static_colours(self) -> np.ndarray:
+        """(faces, 4) colours of the static structure: walls painted, ceilings white, wooden floors, sky-blue
+        windows (by the part's category, :data:`STRUCTURE_COLOURS`); other parts by their material."""
+        if getattr(self, "_static_cols", None) is None:
+            sm = self.core.static_mesh()
+            per_part = np.array([STRUCTURE_COLOURS.get(part_category(n), (0, 0, 0, 0)) for n in sm.part_names]
+                                or np.zeros((0, 4)), np.uint8).reshape(-1, 4)
+            cols = self._mat_pal[sm.face_material].copy()
+            known = per_part[sm.face_part, 3] > 0
+            cols[known] = per_part[sm.face_part[known]]
+            self._static_cols = cols
+        return self._static_cols
+
+    def _object_mesh(self, o) -> tuple:
+        """(local mesh of all its parts, (faces, 4) uint8 colours): each part in its own colour (the category's
+        colour for an object without parts; its instance id in an id scene)."""
+        import trimesh
+
+        looks = o.looks()
+        hit = self._local.get(o.name)
+        if hit is None or hit[0] is not looks[0][2]:  # parts are made once: concatenated once
+            meshes = [m for _, _, m, _ in looks]
+            hit = self._local[o.name] = (looks[0][2], meshes[0] if len(meshes) == 1 else
+                                         trimesh.util.concatenate(meshes))
+        mesh = hit[1]
+        if self.ids:
+            cols = np.tile(self._obj_colour[o.name], (len(mesh.faces), 1))
+        else:
+            cols = np.concatenate([np.tile(np.asarray(c if c is not None else self._obj_colour[o.name], np.uint8),
+                                           (len(m.faces), 1)) for _, _, m, c in looks])
+        return mesh, cols
+
     def _own_node(self, name: str) -> None:
         import pyrender
+        import trimesh
 
         o = self.core.object(name)
-        tm = o.mesh.copy()
-        tm.visual.face_colors = self._colours(np.tile(self._obj_colour[name], (len(tm.faces), 1)), tm.face_normals)
+        m, cols = self._object_mesh(o)
+        tm = trimesh.Trimesh(m.vertices.copy(), m.faces.copy(), process=False)
+        tm.visual.face_colors = self._colours(cols, tm.face_normals)
         self.nodes[name] = self.scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False), pose=o.pose)
 
     def _colours(self, colours: np.ndarray, normals: np.ndarray) -> np.ndarray:
