@@ -87,3 +87,16 @@ def test_same_seed_same_furniture():
         assert all(np.array_equal(p.mesh.vertices, q.mesh.vertices) for p, q in zip(oa.parts, ob.parts))
     styles = {len(o.parts) for s in _homes(12) for o in s.objects if o.category == "straight_chair"}
     assert len(styles) > 1  # chairs come in more than one style
+
+
+def test_gallery_shows_every_room_type_and_category(tmp_path, cli):
+    import json
+
+    r = cli("scene", "gallery", "builtin:apartment", "builtin:apartment?seed=1", "--out", str(tmp_path / "g.png"),
+            "--json")
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    scenes = [load_scene("builtin:apartment"), load_scene("builtin:apartment?seed=1")]
+    assert set(d["rooms"]) == {room.type for s in scenes for room in s.rooms}
+    assert set(d["categories"]) == {o.category for s in scenes for o in s.objects}
+    assert (tmp_path / "g.png").stat().st_size > 50_000

@@ -55,6 +55,14 @@ def cmd_scene_map(a) -> int:
     return 0
 
 
+def cmd_scene_gallery(a) -> int:
+    from app.scene.gallery import gallery
+
+    res = gallery(a.specs, a.out)
+    print(json.dumps(res) if a.json else res["out"])
+    return 0
+
+
 # --- demo ---------------------------------------------------------------------------------------------------
 def cmd_demo(a) -> int:
     """The main job on the embedded default scene."""
@@ -106,6 +114,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("spec", help="scene spec")
     s.add_argument("--out", required=True, type=A.out_file(".png"), help="output PNG file")
     s.set_defaults(func=cmd_scene_map)
+    s = scs.add_parser("gallery", help="how homes look: every room type and a close-up of every category (PNG)",
+                       description="Render every room type from eye height and a close-up of every furniture "
+                       "category of the given homes into one contact sheet.")
+    s.add_argument("specs", nargs="+", metavar="SPEC", help="scene specs (the first home with a room type is used)")
+    s.add_argument("--out", required=True, type=A.out_file(".png"), help="output PNG file")
+    s.add_argument("--json", action="store_true", help="print one JSON object")
+    s.set_defaults(func=cmd_scene_gallery)
 
     d = sub.add_parser("demo", help="the main job on the default scene", description="Build the default "
                        "apartment and write its map, summary, and a short headless run's outputs to a folder.")
