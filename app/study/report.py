@@ -38,6 +38,15 @@ def _summ(rows: list[dict]) -> dict:
     return out
 
 
+def _save(fig, out: Path, name: str, summary: dict) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(out / f"{name}.png", dpi=100)
+    plt.close(fig)
+    summary["plots"][name] = str(out / f"{name}.png")
+
+
 def write_report(store, out: str | Path, pid: str | None = None) -> dict:
     from sonicverse_core.storage import write_text_atomic
 
@@ -81,10 +90,7 @@ def write_report(store, out: str | Path, pid: str | None = None) -> dict:
         ax.set(xlabel="trial (in the condition)", ylabel="azimuth error (deg, reversals resolved)",
                title="Orientation training: learning curves")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(out / "learning_curves.png", dpi=100)
-        plt.close(fig)
-        summary["plots"]["learning_curves"] = str(out / "learning_curves.png")
+        _save(fig, out, "learning_curves", summary)
     else:
         summary["left_out"].append("learning_curves (no orientation trials)")
 
@@ -99,10 +105,7 @@ def write_report(store, out: str | Path, pid: str | None = None) -> dict:
         ax.axhspan(1.0, 2.5, color="g", alpha=0.1, label="band 1.0-2.5 m")
         ax.set(xlabel="time (s)", ylabel="geodesic distance to the person (m)", title="Speaker following")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(out / "following_distance.png", dpi=100)
-        plt.close(fig)
-        summary["plots"]["following_distance"] = str(out / "following_distance.png")
+        _save(fig, out, "following_distance", summary)
     else:
         summary["left_out"].append("following_distance (no speaker-following trials)")
 
@@ -113,10 +116,7 @@ def write_report(store, out: str | Path, pid: str | None = None) -> dict:
         fig, ax = plt.subplots(figsize=(5, 4))
         ax.bar(conds, rates)
         ax.set(ylim=(0, 1), ylabel="success rate", title="Voice retrieval per condition")
-        fig.tight_layout()
-        fig.savefig(out / "retrieval_success.png", dpi=100)
-        plt.close(fig)
-        summary["plots"]["retrieval_success"] = str(out / "retrieval_success.png")
+        _save(fig, out, "retrieval_success", summary)
     else:
         summary["left_out"].append("retrieval_success (no voice-retrieval trials)")
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=1))
