@@ -21,7 +21,10 @@ SCENE = "shoebox:6x5x3"
 def _start(out: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "app.cli", "vr", "--backend", "headless", "--scene", SCENE,
                              "--audio-only", "--realtime", "--frames", "100000", "--out", str(out), "--json"],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            # Ctrl-C as a terminal delivers it, even where this test runs with SIGINT ignored
+                            # (a background job inherits SIG_IGN, and Python then installs no handler)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _wait_for_frames(proc, path: Path, n: int, timeout: float = 120.0) -> None:
