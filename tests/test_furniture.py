@@ -100,3 +100,27 @@ def test_gallery_shows_every_room_type_and_category(tmp_path, cli):
     assert set(d["rooms"]) == {room.type for s in scenes for room in s.rooms}
     assert set(d["categories"]) == {o.category for s in scenes for o in s.objects}
     assert (tmp_path / "g.png").stat().st_size > 50_000
+
+
+def test_bodies_are_built_from_parts():
+    """The TurtleBot 2 and the person of the VR views: parts where the robot's config puts them."""
+    import trimesh
+
+    from sonicverse_core.world.robot import RobotConfig
+
+    c = RobotConfig()
+    bot = furniture.turtlebot(c)
+    names = [p.name for p in bot]
+    assert names.count("plate") == 3 and names.count("microphone") == 2 and "camera" in names
+    mics = [p.mesh.centroid for p in bot if p.name == "microphone"]
+    assert np.allclose([m[2] for m in mics], c.ear_height, atol=1e-6)
+    assert abs(abs(mics[0][1] - mics[1][1]) - c.ear_spacing) < 1e-6
+    cam = next(p for p in bot if p.name == "camera").mesh.centroid
+    assert abs(cam[2] - c.camera_height) < 1e-6
+    m = trimesh.util.concatenate([p.mesh for p in bot])
+    assert np.hypot(*m.vertices[:, :2].T).max() <= c.radius + 0.01
+    body = furniture.person(1.8, 0.25)
+    mb = trimesh.util.concatenate([p.mesh for p in body])
+    assert abs(mb.bounds[1, 2] - 1.8) < 1e-6 and mb.bounds[0, 2] == 0.0
+    assert np.hypot(*mb.vertices[:, :2].T).max() <= 0.27
+    assert {"head", "torso", "arm", "hand", "leg", "shoe"} <= {p.name for p in body}

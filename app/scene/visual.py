@@ -19,6 +19,7 @@ import numpy as np
 
 from app.scene.eyes import IPD, eye_offsets
 from sonicverse_core.errors import ConfigError
+from sonicverse_core.scene.furniture import turtlebot
 from sonicverse_core.scene.model import yaw_pose
 from sonicverse_core.sensors.camera import RenderScene, camera_matrix as head_matrix  # sets PYOPENGL_PLATFORM=egl
 
@@ -32,7 +33,6 @@ LIGHT_DIR = np.array([0.35, 0.5, 0.79])  # towards the light (unit), from above
 CULL_MIN_TRIANGLES = 250_000
 SKIN = (224, 172, 140, 255)
 SHIRT = (60, 110, 190, 255)
-ROBOT = (45, 45, 50, 255)
 
 
 class FixedCamera(pyrender.Camera):
@@ -93,6 +93,27 @@ def offscreen_renderer(width: int, height: int, msaa: bool = True, colour_only: 
     return r
 
 
+AVATAR_HEIGHT = 1.75
+AVATAR_NECK = 0.82 * AVATAR_HEIGHT + 0.06  # the top of the body's neck (furniture.person)
+
+
+def _avatar_body() -> tuple:
+    """The user's body below the tracked head, without the hands (tracked too): the person's parts."""
+    from sonicverse_core.scene.furniture import person
+
+    return tuple(p for p in person(AVATAR_HEIGHT, 0.25, shirt=SHIRT) if p.name not in ("head", "hair", "nose", "hand"))
+
+
+def _parts_mesh(parts) -> "pyrender.Mesh":
+    """One mesh of parts (ObjectPart) in their colours, lit as the rest of the scene."""
+    import trimesh
+
+    tm = trimesh.util.concatenate([p.mesh for p in parts])
+    cols = np.concatenate([np.tile(np.asarray(p.colour, np.uint8), (len(p.mesh.faces), 1)) for p in parts])
+    tm.visual.face_colors = bake_lighting(cols, tm.face_normals)
+    return pyrender.Mesh.from_trimesh(tm, smooth=False)
+
+
 def _solid(tm, colour) -> "pyrender.Mesh":
     tm.visual.face_colors = bake_lighting(np.tile(np.array(colour, np.uint8), (len(tm.faces), 1)), tm.face_normals)
     return pyrender.Mesh.from_trimesh(tm, smooth=False)
@@ -138,11 +159,10 @@ class VisualScene:
         self.avatar = {}
         if avatar:  # head, body (hidden in the user's own eyes), two hands
             self.avatar["head"] = self.scene.add(_solid(trimesh.creation.icosphere(2, 0.11), SKIN))
-            self.avatar["body"] = self.scene.add(_solid(trimesh.creation.cylinder(0.17, 1.0, 16), SHIRT))
+            self.avatar["body"] = self.scene.add(_parts_mesh(_avatar_body()))
             for k in ("left", "right"):
                 self.avatar[k] = self.scene.add(_solid(trimesh.creation.icosphere(1, 0.05), SKIN))
-        self.robot_nodes = [self.scene.add(_solid(trimesh.creation.cylinder(0.177, 0.42, 24), ROBOT))
-                            for _ in range(robots)]
+        self.robot_nodes = [self.scene.add(_parts_mesh(turtlebot())) for _ in range(robots)]
         self._robot_cam = None
 
     # --- per frame ----------------------------------------------------------------------------------------------
@@ -152,10 +172,12 @@ class VisualScene:
         if head is not None and self.avatar:
             self.scene.set_pose(self.avatar["head"], head)
             z0 = self.core.floor_z
-            top = max(head[2, 3] - 0.22, z0 + 0.3)
+            top = max(head[2, 3] - 0.12, z0 + 0.3)  # the neck's top, under the tracked head
+            yaw = np.arctan2(-head[1, 2], -head[0, 2])  # the body turns with the head (forward: -z)
             body = np.eye(4)
-            body[:3, :3] = np.diag([1.0, 1.0, top - z0])
-            body[:3, 3] = (head[0, 3], head[1, 3], 0.5 * (z0 + top))
+            body[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]) @ \
+                np.diag([1.0, 1.0, (top - z0) / AVATAR_NECK])
+            body[:3, 3] = (head[0, 3], head[1, 3], z0)
             self.scene.set_pose(self.avatar["body"], body)
             for k, name in enumerate(("left", "right")):
                 ok = hands is not None and (hands_valid is None or hands_valid[k])
@@ -163,7 +185,7 @@ class VisualScene:
                 if ok:
                     self.scene.set_pose(self.avatar[name], hands[k])
         for node, rb in zip(self.robot_nodes, robots):
-            self.scene.set_pose(node, yaw_pose(rb[0], rb[1], self.core.floor_z + 0.21, rb[2]))
+            self.scene.set_pose(node, yaw_pose(rb[0], rb[1], self.core.floor_z, rb[2]))
 
     def _cull(self, pose: np.ndarray) -> None:
         """Load and draw only the rooms visible from where this view's camera stands."""

@@ -348,3 +348,65 @@ def build(category: str, w: float, d: float, h: float, rng: np.random.Generator)
     if f is None:
         return (ObjectPart(category, None, _box((-w / 2, -d / 2, 0), (w / 2, d / 2, h)), (150, 150, 150, 255)),)
     return tuple(f(w, d, h, rng))
+
+
+def turtlebot(cfg=None) -> tuple:
+    """A TurtleBot 2 in its local frame (base on z = 0, facing +x): the Kobuki base with its bumper, three plates on
+    standoffs up to ``height``, the depth camera on the top plate and the two microphones beside it at
+    ``ear_height`` (``ear_spacing`` apart), as :class:`ObjectPart` parts."""
+    from sonicverse_core.world.robot import RobotConfig
+
+    c = cfg or RobotConfig()
+    r, top = c.radius, c.height
+    p = _Parts()
+    p.add("base", "Metal", _cyl(0, 0, 0.01, 0.09, r, 32), (45, 47, 52))
+    for a in np.radians(np.linspace(-70, 70, 9)):  # the bumper: blocks round the front of the base
+        seg = _box((-0.008, -0.022, 0.03), (0.0, 0.022, 0.07))
+        seg.apply_transform(trimesh.transformations.rotation_matrix(a, (0, 0, 1)))
+        seg.apply_translation((r * np.cos(a), r * np.sin(a), 0))
+        p.add("bumper", "Metal", seg, (25, 25, 28))
+    for z in (0.13, 0.25, top - 0.01):
+        p.add("plate", "PlywoodPanel", _cyl(0, 0, z, z + 0.01, r - 0.02, 32), (30, 30, 32))
+    for k in range(6):
+        a = 2 * np.pi * k / 6 + np.pi / 6
+        p.add("standoff", "Metal", _cyl(0.8 * (r - 0.02) * np.cos(a), 0.8 * (r - 0.02) * np.sin(a), 0.09, top - 0.01,
+                                        0.006, 8), METAL)
+    cam_z = c.camera_height
+    p.add("camera mount", "Metal", _box((-0.02, -0.02, top), (0.02, 0.02, cam_z - 0.02)), DARK)
+    p.add("camera", "Metal", _box((-0.03, -0.09, cam_z - 0.02), (0.03, 0.09, cam_z + 0.02)), (20, 20, 22))
+    p.add("lens", "GlassThin", _box((0.03, -0.012, cam_z - 0.012), (0.036, 0.012, cam_z + 0.012)), (60, 90, 140))
+    for s in (-1, 1):
+        y = s * c.ear_spacing / 2
+        p.add("microphone", "Metal", _cyl(0, y, c.ear_height - 0.015, c.ear_height + 0.015, 0.012, 12), (200, 40, 40))
+    return tuple(p)
+
+
+def person(height: float = 1.75, radius: float = 0.25, shirt=(70, 100, 150), trousers=(50, 55, 70),
+           skin=(225, 184, 150)) -> tuple:
+    """A standing person in its local frame (feet on z = 0, facing +x) within ``radius`` of its axis: legs and shoes,
+    hips, a torso, shoulders, arms and hands at its sides, a neck and a head with a nose, as parts."""
+    h = height
+    p = _Parts()
+    leg_top = 0.47 * h
+    for s in (-1, 1):
+        y = s * 0.085
+        p.add("shoe", "CurtainHeavy", _box((-0.05, y - 0.045, 0), (0.12, y + 0.045, 0.06)), (40, 35, 30))
+        p.add("leg", "CurtainHeavy", _cyl(0, y, 0.06, leg_top, 0.075, 12), trousers)
+    p.add("hips", "CurtainHeavy", _box((-0.1, -0.16, leg_top - 0.04), (0.1, 0.16, leg_top + 0.08)), trousers)
+    shoulder = 0.82 * h
+    p.add("torso", "CurtainHeavy", _box((-0.12, -0.18, leg_top + 0.08), (0.12, 0.18, shoulder)), shirt)
+    p.add("shoulders", "CurtainHeavy", _box((-0.11, -0.21, shoulder - 0.06), (0.11, 0.21, shoulder + 0.02)), shirt)
+    arm_y = min(0.2, radius - 0.05)  # the arms hang against the torso
+    for s in (-1, 1):
+        y = s * arm_y
+        p.add("arm", "CurtainHeavy", _cyl(0.02, y, leg_top + 0.06, shoulder, 0.045, 10), shirt)
+        p.add("hand", "CurtainHeavy", _box((-0.03, y - 0.025, leg_top - 0.04), (0.04, y + 0.025, leg_top + 0.06)),
+              skin)
+    p.add("neck", "CurtainHeavy", _cyl(0, 0, shoulder + 0.02, shoulder + 0.06, 0.05, 10), skin)
+    head = trimesh.creation.icosphere(subdivisions=2, radius=0.11)
+    head.apply_scale((0.95, 0.85, 1.05))
+    head.apply_translation((0, 0, h - 0.12))
+    p.add("head", "CurtainHeavy", head, skin)
+    p.add("hair", "CurtainHeavy", _box((-0.1, -0.085, h - 0.06), (0.06, 0.085, h)), (60, 45, 35))
+    p.add("nose", "CurtainHeavy", _box((0.09, -0.015, h - 0.15), (0.125, 0.015, h - 0.11)), skin)
+    return tuple(p)

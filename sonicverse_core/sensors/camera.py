@@ -329,9 +329,10 @@ class RGBDCamera:
             self.ids_cam = self.ids_rs.scene.add(self.camera, pose=np.eye(4))
 
     # --- actors: bodies that are not part of the core scene (a person), seen but not heard as geometry ------------
-    def set_actor(self, name: str, mesh, rgba=(200, 120, 90, 255), category: str | None = None) -> None:
-        """Show ``mesh`` (a trimesh in its local frame) as actor ``name`` (the same mesh again: nothing to do);
-        its semantic category is ``category`` (default: its name without trailing numbers)."""
+    def set_actor(self, name: str, mesh, rgba=None, category: str | None = None) -> None:
+        """Show ``mesh`` (a trimesh in its local frame) as actor ``name`` (the same mesh again: nothing to do) in
+        ``rgba`` (None: the mesh's own face colours, else a skin tone); its semantic category is ``category``
+        (default: its name without trailing numbers)."""
         import pyrender
 
         held = self._actors.get(name)
@@ -340,7 +341,8 @@ class RGBDCamera:
         if held is not None:
             self._remove_actor(held)
         tm = mesh.copy()
-        tm.visual.face_colors = np.tile(np.asarray(rgba, np.uint8), (len(tm.faces), 1))
+        if rgba is not None or getattr(mesh.visual, "kind", None) != "face":
+            tm.visual.face_colors = np.tile(np.asarray(rgba or (200, 120, 90, 255), np.uint8), (len(tm.faces), 1))
         nodes = [self.scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False), pose=np.eye(4))]
         if self.ids_rs is not None:
             i = self.labels.add_actor(name, category or part_category(name))

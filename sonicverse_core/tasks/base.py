@@ -346,8 +346,9 @@ class TaskEnv(gym.Env):
         """A source in this episode's renderer (``AcousticRenderer.add_source`` arguments)."""
         return self.renderer.add_source(signal, **kwargs)
 
-    def add_actor(self, name: str, mesh, rgba=(200, 120, 90, 255)) -> None:
-        """A body the robot's camera sees (moved with :meth:`move_actor`); not part of the scene's acoustics."""
+    def add_actor(self, name: str, mesh, rgba=None) -> None:
+        """A body the robot's camera sees (moved with :meth:`move_actor`); not part of the scene's acoustics.
+        ``rgba``: one colour for all of it (None: the mesh's own face colours)."""
         self._actors[name] = (mesh, rgba, np.eye(4))
         if self.camera is not None:
             self.camera.set_actor(name, mesh, rgba)
