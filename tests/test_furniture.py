@@ -124,3 +124,22 @@ def test_bodies_are_built_from_parts():
     assert abs(mb.bounds[1, 2] - 1.8) < 1e-6 and mb.bounds[0, 2] == 0.0
     assert np.hypot(*mb.vertices[:, :2].T).max() <= 0.27
     assert {"head", "torso", "arm", "hand", "leg", "shoe"} <= {p.name for p in body}
+
+
+def test_scene_info_reports_the_look():
+    """`scene info`'s visual size is what pyrender uploads (checked on a primitive of the same kind), and the
+    material areas count the parts the ear hears."""
+    import pyrender
+    import trimesh
+
+    from sonicverse_core.scene.summary import VERTEX_BYTES, scene_info
+
+    box = trimesh.creation.box()
+    box.visual.face_colors = np.tile([10, 20, 30, 255], (12, 1)).astype(np.uint8)
+    prim = pyrender.Mesh.from_trimesh(box, smooth=False).primitives[0]
+    assert prim.positions.nbytes + prim.normals.nbytes + prim.color_0.nbytes == VERTEX_BYTES * 3 * 12
+    scene = load_scene("builtin:apartment")
+    info = scene_info(scene)
+    assert info["visual"]["triangles"] == scene.triangle_count == len(scene.static_mesh()) + len(scene.dynamic_mesh())
+    assert info["visual"]["object_parts"] == sum(len(o.parts) for o in scene.objects)
+    assert info["materials_m2"]["CurtainHeavy"] > 0 and info["materials_m2"]["Metal"] > 0  # cushions, handles

@@ -8,13 +8,21 @@ import numpy as np
 from sonicverse_core.scene.model import Door, Scene
 
 
+VERTEX_BYTES = 4 * (3 + 3 + 4)  # pyrender's flat-shaded vertex: position, normal, colour (float32)
+
+
 def scene_info(scene: Scene, nav_area: float | None = None) -> dict:
-    """Rooms, objects per category, materials with their surface areas (m^2), floor area, bounds, triangles."""
+    """Rooms, objects per category, materials with their surface areas (m^2: the structure's and every object
+    part's), floor area, bounds, triangles, and the look's size in the renderer (``visual``)."""
     areas: Counter = Counter()
     for p in scene.static:
         areas[p.material] += float(p.mesh.area)
-    for o in scene.objects:
-        areas[o.material] += float(o.mesh.area)
+    parts = 0
+    for o in scene.objects:  # what the ear hears: each part's surface in its own material
+        for _, mat, m, _ in o.looks():
+            areas[mat] += float(m.area)
+            parts += 1
+    tris = scene.triangle_count
     floor = sum(r.area for r in scene.rooms) if scene.rooms else 0.0
     info = {
         "name": scene.name,
@@ -30,6 +38,11 @@ def scene_info(scene: Scene, nav_area: float | None = None) -> dict:
         "doors": [{"name": d.name, "rooms": list(d.rooms), "open_fraction": d.open_fraction}
                   for d in scene.objects if isinstance(d, Door)],
         "materials_m2": {k: round(v, 2) for k, v in sorted(areas.items())},
+        # what the eye's renderer uploads: flat-shaded triangles, 3 vertices each of position, normal and RGBA
+        # colour, all float32 (pyrender) = 120 bytes a triangle (the robot's camera keeps one copy, the VR views
+        # another)
+        "visual": {"triangles": tris, "object_parts": parts, "buffer_bytes": VERTEX_BYTES * 3 * tris,
+                   "buffer_mib": round(VERTEX_BYTES * 3 * tris / 2**20, 3)},
         "metadata": {k: v for k, v in scene.metadata.items() if isinstance(v, (int, float, str, list))},
     }
     if nav_area is not None:
