@@ -68,6 +68,9 @@ def jack():
     old = os.environ.get("JACK_DEFAULT_SERVER")
     os.environ["JACK_DEFAULT_SERVER"] = srv.name
     yield srv
+    sd = sys.modules.get("sounddevice")
+    if sd is not None:  # PortAudio of this process leaves the server first (its exit would assert on a dead one)
+        sd._terminate()
     srv.stop()
     if old is None:
         os.environ.pop("JACK_DEFAULT_SERVER", None)

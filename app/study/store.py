@@ -308,24 +308,20 @@ class StudyStore:
         """Make the session's CSV hold exactly the database's trials (a kill between the commit and the append, or
         in the middle of a line, leaves it behind); True when it had to be rewritten."""
         p = self.csv_path(pid, session)
-        want = [str(s) for s in sorted(self.finished_slots(pid, session))]
+        want = sorted(self.finished_slots(pid, session))
+        slot_of = {(s.block, s.trial): s.slot for s in self.plan(pid, session)}
         try:
             with open(p, newline="", encoding="utf-8") as fh:
                 text = fh.read()
             rows = list(csv.DictReader(io.StringIO(text)))
             ok = text.endswith("\n") and len(rows) == len(want) and \
-                [self._slot_of(pid, session, r) for r in rows] == want
+                [slot_of.get((int(r["block"]), int(r["trial"]))) for r in rows] == want
         except (OSError, csv.Error, KeyError, ValueError):
             ok = False
         if not ok:
             self._rewrite_csv(pid, session)
             self.event(pid, session, "csv_rewritten", f"{len(want)} trials from the database")
         return not ok
-
-    def _slot_of(self, pid: str, session: int, r: dict) -> str:
-        q = self._db().execute("SELECT slot FROM plan WHERE participant = ? AND session = ? AND block = ? AND "
-                               "trial = ?", (pid, session, int(r["block"]), int(r["trial"]))).fetchone()
-        return str(q[0]) if q else "?"
 
 
 def _plain(o):

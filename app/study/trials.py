@@ -44,6 +44,7 @@ class TrialRunner:
         self.backend, self.audio_device = backend, audio_device
         self._envs: dict = {}
         self._orient: dict = {}
+        self._scored: int | None = None  # scored orientation trials so far in the session (the listener's practice)
         self.raw_dir = store.session_dir(pid, session) / "raw"
 
     def close(self) -> None:
@@ -72,18 +73,20 @@ class TrialRunner:
         from sonicverse_core.tasks.orientation import OrientationTraining, SimulatedListener
 
         ot = self._orient.get(slot.block)
-        done = [t for t in self.store.trials(self.pid, self.session) if t["task"] == slot.task]
-        if ot is None:  # the block's staircase, replayed from what was committed (a resume goes on where it was)
+        if ot is None or self._scored is None:  # read what was committed once (a resume goes on where it was)
+            done = [t for t in self.store.trials(self.pid, self.session) if t["task"] == slot.task]
+            self._scored = sum(1 for t in done if not t["practice"])
+        if ot is None:  # the block's staircase, replayed from the committed trials
             ot = self._orient[slot.block] = OrientationTraining(
                 mode=blk.mode, trials=blk.trials, practice=blk.practice, difficulty=blk.difficulty,
                 staircase=blk.staircase, hrtf=cond.hrtf, reverb=cond.reverb)
             for t in done:
                 if t["block"] == slot.block and not t["practice"] and "correct" in t["metrics"]:
                     ot.staircases[blk.mode].update(bool(t["metrics"]["correct"]))
-        scored = sum(1 for t in done if not t["practice"])  # the listener's practice so far in the session
         listener = SimulatedListener(**{**self.study.simulated, **cond.simulated})
         row = ot.run_trial(slot.trial, "practice" if slot.practice else slot.block, blk.mode, listener,
-                           np.random.default_rng(slot.seed), scored)
+                           np.random.default_rng(slot.seed), self._scored)
+        self._scored += not slot.practice
         row["block"] = slot.block
         return _plain(row), dict(NOT_MEASURED), {}
 

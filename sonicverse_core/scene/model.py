@@ -93,15 +93,6 @@ class SceneObject:
             return [(self.category, self.material, self.mesh, None)]
         return [(p.name, p.material or self.material, p.mesh, p.colour) for p in self.parts]
 
-    def world_looks(self) -> list[tuple]:
-        """(material, world mesh) per part."""
-        out = []
-        for _, mat, mesh, _ in self.looks():
-            m = mesh.copy()
-            m.apply_transform(self.pose)
-            out.append((mat, m))
-        return out
-
     def set_pose(self, pose: np.ndarray) -> None:
         pose = np.asarray(pose, dtype=float)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
@@ -254,7 +245,7 @@ class Scene:
         self.dynamic_version = 0
         self._static_mesh: SceneMesh | None = None
         self._dynamic_cache: dict = {}  # "looks" | "proxy" -> (dynamic_version, SceneMesh)
-        self._world_cache: dict = {}  # (kind, object name) -> (pose bytes, [(material, world mesh)])
+        self._world_cache: dict = {}  # (kind, name): (pose bytes, world vertices); (kind, name, "local"): arrays
         names = [o.name for o in self.objects]
         if len(set(names)) != len(names):
             raise MeshError(f"scene '{name}': object names must be unique")
@@ -295,20 +286,36 @@ class Scene:
 
     def dynamic_mesh(self, proxies: bool = False) -> SceneMesh:
         """The objects in their current poses: what is seen and heard (their parts), or with ``proxies`` their
-        simple proxies (collision and navigation). Every face is named by its object."""
+        simple proxies (collision and navigation). One part per object, named by the object: a door swinging costs
+        the transform of its own vertices and one concatenation of per-object arrays."""
         key = "proxy" if proxies else "looks"
-        cache = self._dynamic_cache
-        hit = cache.get(key)
+        hit = self._dynamic_cache.get(key)
         if hit is None or hit[0] != self.dynamic_version:
-            parts = []
-            for o in self.objects:  # only objects that moved are transformed again (a door swinging: one)
+            verts, faces, mats, off = [], [], [], 0
+            for o in self.objects:
+                local = self._world_cache.get((key, o.name, "local"))
+                if local is None:  # the object's parts as one array each, made once
+                    looks = [(o.material, o.mesh)] if proxies else [(mat, m) for _, mat, m, _ in o.looks()]
+                    v = np.concatenate([np.asarray(m.vertices, float) for _, m in looks])
+                    n = np.cumsum([0] + [len(m.vertices) for _, m in looks[:-1]])
+                    f = np.concatenate([np.asarray(m.faces, np.int64) + k for (_, m), k in zip(looks, n)])
+                    mt = np.concatenate([np.full(len(m.faces), MATERIAL_INDEX[mat], np.int32) for mat, m in looks])
+                    local = self._world_cache[(key, o.name, "local")] = (v, f, mt)
                 pose = o.pose.tobytes()
                 w = self._world_cache.get((key, o.name))
-                if w is None or w[0] != pose:
-                    w = self._world_cache[(key, o.name)] = (pose, [(o.material, o.world_mesh())] if proxies
-                                                            else o.world_looks())
-                parts += [(o.name, mat, m) for mat, m in w[1]]
-            hit = cache[key] = (self.dynamic_version, SceneMesh.from_parts(parts))
+                if w is None or w[0] != pose:  # only objects that moved are transformed again
+                    w = self._world_cache[(key, o.name)] = (pose, local[0] @ o.pose[:3, :3].T + o.pose[:3, 3])
+                verts.append(w[1])
+                faces.append(local[1] + off)
+                mats.append(local[2])
+                off += len(w[1])
+            if verts:
+                mesh = SceneMesh(np.concatenate(verts), np.concatenate(faces), np.concatenate(mats),
+                                 np.repeat(np.arange(len(self.objects), dtype=np.int32), [len(f) for f in faces]),
+                                 tuple(o.name for o in self.objects))
+            else:
+                mesh = SceneMesh.from_parts([])
+            hit = self._dynamic_cache[key] = (self.dynamic_version, mesh)
         return hit[1]
 
     @property
