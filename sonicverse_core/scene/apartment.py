@@ -203,7 +203,9 @@ def _assign_types(rng, rooms: list[RoomPlan], n_rooms: int):
 def _segments(rooms: list[RoomPlan], W: float, D: float) -> list[Segment]:
     segs = [Segment(0, 0.0, 0.0, W, True), Segment(0, D, 0.0, W, True),
             Segment(1, 0.0, 0.0, D, True), Segment(1, W, 0.0, D, True)]
-    ys = sorted({r.rect.y0 for r in rooms} | {r.rect.y1 for r in rooms} - {0.0, D})
+    # inner horizontal walls only: the outer ones (y = 0 and D) are above (a set difference binds tighter than a
+    # union: without the brackets a second, opening-less wall at y = 0 covered the south windows)
+    ys = sorted(({r.rect.y0 for r in rooms} | {r.rect.y1 for r in rooms}) - {0.0, D})
     for y in ys:
         segs.append(Segment(0, y, 0.0, W, False))
     for r in rooms:
