@@ -116,5 +116,7 @@ def test_bench_camera_reports_every_output(cli):
     r = cli("bench", "camera", "--frames", "10", "--size", "32")
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
-    assert set(d["ms_per_frame"]) == {"depth", "rgbd", "semantic", "rgbd+semantic"}
+    assert set(d["ms_per_frame"]) == {"depth", "rgbd", "rgbd_flat_look", "rgbd_msaa", "rgbd_pbr_shadows", "semantic",
+                                      "rgbd+semantic"}
+    assert d["look_bake_s"] > 0
     assert d["ratio_to_depth"]["depth"] == 1.0 and all(v > 0 for v in d["ms_per_frame"].values())

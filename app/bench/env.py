@@ -72,12 +72,27 @@ def bench_env(task: str = "AudioGoal", steps: int = 400, workers: int = 2, size:
     parts["other_ms"] = parts["step_total_ms"] - sum(v for k, v in parts.items() if k != "step_total_ms")
     depth_fps = 1000.0 / parts["depth_render_ms"]
     env.close()
+    # the same env with the RGB camera on (the home's look): what RGB-D costs a step
+    env = make_env(task, split="test", homes=1, sensors=("rgb",) + sensors, width=size, height=size)
+    _run(env, actions[:20], seed)
+    sps_rgb = _run(env, actions, seed, "env steps with RGB")
+    cam = env._camera()
+    w = env.home.world
+    n = 200
+    cam.render(*w.camera)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        cam.render(*w.camera)
+    rgbd_fps = n / (time.perf_counter() - t0)
+    env.close()
 
     out = {"bench": "env", "task": task, "sensors": list(sensors), "size": size, "steps": steps,
            "steps_per_s": round(sps, 1), "breakdown_ms": {k: round(v, 3) for k, v in parts.items()},
            "reference_depth_renders_per_s": round(depth_fps, 1),
            "overhead_vs_depth_render": round(sps / depth_fps, 3),
            "vs_soundspaces2": round(sps / SOUNDSPACES2_STEPS_PER_S, 1),
+           "with_rgb": {"steps_per_s": round(sps_rgb, 1), "rgbd_renders_per_s": round(rgbd_fps, 1),
+                        "cost_vs_without": round(sps / sps_rgb, 2)},
            "audio": "16 kHz binaural, 0.1 s per step, direct + occlusion + early reflections + late reverb"}
     if workers > 0:
         out["vector"] = bench_vector(task, workers, steps, size, seed)

@@ -1,7 +1,7 @@
 """`sonicverse bench vr`: stereo frames per second of the headless loop, with references measured in the same run.
 
-Per eye size: the loop as shipped (lighting baked into face colours, FLAT shader, single-sampled, no depth
-read-back), the same with 4x MSAA (the error of leaving it out: mean absolute pixel difference, 0-255 levels), and
+Per eye size: the loop as shipped (the home's look: textures, light baked per vertex, FLAT shader, single-sampled,
+no depth read-back), the flat look (one colour per face; what the textures and the baked light cost), the same with 4x MSAA (the error of leaving it out: mean absolute pixel difference, 0-255 levels), and
 stock pyrender (lit PBR shader, 4x MSAA, colour + depth read-back) as the reference the speed-up is measured
 against. Then the audio-only loop (tracking + binaural audio rendered by the frame clock); room culling against the
 whole scene (:func:`room_culling`, also on the home subdivided to scanned-house triangle counts); and the live audio
@@ -31,10 +31,35 @@ def _session(scene: str, size, views=True, audio="none", msaa=False, device=None
     return VRSession(cfg, HeadlessBackend(width=size[0], height=size[1], realtime=realtime), task=task)
 
 
+WARMUP = 15  # frames run before timing: shaders compiled, meshes and the texture atlas uploaded
+
+
+def _timed(s, frames: int) -> dict:
+    """Run ``WARMUP`` frames, then time ``frames`` more (fresh frame statistics)."""
+    from app.vr.frame import FrameStats
+
+    if s.views is not None:
+        s.run(frames=WARMUP)
+        s.stats = FrameStats(s.backend.target_hz)
+    return s.run(frames=frames)
+
+
 def _loop(scene, size, frames, **kw) -> tuple[dict, np.ndarray | None]:
     with _session(scene, size, **kw) as s:
-        r = s.run(frames=frames)
+        r = _timed(s, frames)
         return {k: r[k] for k in ("fps", "frame_ms_p50", "frame_ms_p99", "missed_frames")}, s.last_views
+
+
+def _flat(scene, size, frames, **kw) -> tuple[dict, np.ndarray | None]:
+    """The loop with the flat look (one colour per face, a directional light baked in; no textures, no baked room
+    light, no cut faces): what the home's look costs. With ``kw`` (VisualScene's): another variant of the views."""
+    from app.scene.visual import VisualScene
+
+    with _session(scene, size) as s:
+        s.views.close()
+        s.views = VisualScene(s.scene, *size, robots=s.cfg.robots, msaa=False, **(kw or {"shading": "baked"}))
+        r = _timed(s, frames)
+        return {k: r[k] for k in ("fps", "frame_ms_p50", "frame_ms_p99")}, s.last_views
 
 
 def _stock(scene, size, frames) -> dict:
@@ -48,7 +73,7 @@ def _stock(scene, size, frames) -> dict:
         s.views = v = VisualScene(s.scene, *size, shading="lit", robots=s.cfg.robots)
         v.renderer.delete()
         v.renderer = pyrender.OffscreenRenderer(*size)
-        r = s.run(frames=frames)
+        r = _timed(s, frames)
         return {k: r[k] for k in ("fps", "frame_ms_p50", "frame_ms_p99")}
 
 
@@ -61,9 +86,14 @@ def bench_vr(sizes, frames: int = 60, scene: str = "builtin:apartment", audio_se
         fast, img_fast = _loop(scene, (w, h), frames)
         ms, img_ms = _loop(scene, (w, h), frames, msaa=True)  # same frames: the last views show the same pose
         stock = _stock(scene, (w, h), max(frames // 4, 8))
+        flat, _ = _flat(scene, (w, h), frames)
+        tri, _ = _flat(scene, (w, h), frames, shading="home", texture_filter="trilinear")
         out["sizes"][f"{w}x{h}"] = {
             "stereo_fps": fast["fps"], "frame_ms_p50": fast["frame_ms_p50"], "frame_ms_p99": fast["frame_ms_p99"],
-            "msaa_fps": ms["fps"], "stock_pyrender_fps": stock["fps"],
+            "msaa_fps": ms["fps"], "stock_pyrender_fps": stock["fps"], "flat_look_fps": flat["fps"],
+            "home_look_cost_vs_flat": round(flat["fps"] / fast["fps"], 2) if fast["fps"] else None,
+            "trilinear_fps": tri["fps"],
+            "trilinear_cost": round(fast["fps"] / tri["fps"], 2) if tri["fps"] else None,
             "speedup_vs_stock": round(fast["fps"] / stock["fps"], 2) if stock["fps"] else None,
             "msaa_off_mean_abs_error": None if img_fast is None or img_ms is None else
             round(float(np.abs(img_fast.astype(np.int16) - img_ms).mean()), 3),
@@ -111,7 +141,7 @@ def room_culling(scene: str, size=(512, 512), poses: int = 40, reps: int = 3, se
     cull = VisualScene(sc, *size, cull_rooms=True, avatar=False)
     # the reference: the scene as one merged mesh (no culling), drawn by the same GL context (pyrender's EGL
     # platform cannot close two contexts in one process)
-    whole = RenderScene(sc, face_shading=bake_lighting)
+    whole = RenderScene(sc, face_shading=bake_lighting, look=cull.rs.look)
     cam = whole.scene.add(cull.camera, pose=np.eye(4))
 
     def render_whole(h):

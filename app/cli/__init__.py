@@ -41,6 +41,10 @@ def cmd_scene_info(a) -> int:
             print(f"  {n:3d} x {c}")
         for m, area in info["materials_m2"].items():
             print(f"  {area:9.2f} m² {m}")
+        lk = info["look"]
+        print(f"  look: {lk['triangles']} triangles, {lk['total_mib']} MiB (vertices {lk['vertex_mib']}, texture "
+              f"{lk['texture']} {lk['texture_mib']}), baked in {lk['bake_s']} s"
+              + (" (from the cache)" if lk["from_cache"] else ""))
     return 0
 
 
@@ -58,7 +62,7 @@ def cmd_scene_map(a) -> int:
 def cmd_scene_gallery(a) -> int:
     from app.scene.gallery import gallery
 
-    res = gallery(a.specs, a.out)
+    res = gallery(a.specs, a.out, look=a.look)
     print(json.dumps(res) if a.json else res["out"])
     return 0
 
@@ -114,11 +118,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("spec", help="scene spec")
     s.add_argument("--out", required=True, type=A.out_file(".png"), help="output PNG file")
     s.set_defaults(func=cmd_scene_map)
-    s = scs.add_parser("gallery", help="how homes look: every room type and a close-up of every category (PNG)",
+    s = scs.add_parser("gallery", help="how homes look: every room type and a close-up of every category (PNG/JPEG)",
                        description="Render every room type from eye height and a close-up of every furniture "
                        "category of the given homes into one contact sheet.")
     s.add_argument("specs", nargs="+", metavar="SPEC", help="scene specs (the first home with a room type is used)")
-    s.add_argument("--out", required=True, type=A.out_file(".png"), help="output PNG file")
+    s.add_argument("--out", required=True, type=A.out_file(".png", ".jpg", ".jpeg"),
+                   help="output file (.png, or .jpg: about 5x smaller for textured views)")
+    s.add_argument("--look", default="home", choices=("home", "pbr", "flat"),
+                   help="home: textures and baked light (default); pbr: lit per pixel with shadows (the GPU path); "
+                   "flat: a colour per face")
     s.add_argument("--json", action="store_true", help="print one JSON object")
     s.set_defaults(func=cmd_scene_gallery)
 

@@ -41,7 +41,7 @@ def _close_up(scene, rc, o):
     return None
 
 
-def gallery(specs: list[str], out, size=(320, 240), eye: float = 1.6) -> dict:
+def gallery(specs: list[str], out, size=(320, 240), eye: float = 1.6, look: str = "home") -> dict:
     from PIL import Image
 
     from sonicverse_core.geometry.raycast import SceneRayCaster
@@ -55,7 +55,7 @@ def gallery(specs: list[str], out, size=(320, 240), eye: float = 1.6) -> dict:
         for spec in specs:
             scene = load_scene(spec)
             if cam is None:
-                cam = RGBDCamera(scene, w, h, 90.0, depth=False)
+                cam = RGBDCamera(scene, w, h, 90.0, depth=False, look=look)
             cam.set_scene(scene)
             for r in scene.rooms:
                 if r.type in rooms:
@@ -88,6 +88,7 @@ def gallery(specs: list[str], out, size=(320, 240), eye: float = 1.6) -> dict:
     from sonicverse_core.storage import atomic_write
 
     out = Path(out)
+    jpeg = out.suffix.lower() in (".jpg", ".jpeg")  # textured views compress ~5x better as JPEG
     with atomic_write(out) as fh:
-        Image.fromarray(sheet).save(fh, format="PNG")
+        Image.fromarray(sheet).save(fh, format="JPEG" if jpeg else "PNG", **({"quality": 88} if jpeg else {}))
     return {"out": str(out), "rooms": sorted(rooms), "categories": sorted(close), "tiles": len(tiles)}

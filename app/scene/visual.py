@@ -7,27 +7,27 @@ Offscreen rendering goes through EGL (PYOPENGL_PLATFORM=egl, set before the firs
 on a CPU, the GPU's driver where there is one. Create it inside the process (or worker) that renders.
 
 Speed on a CPU (measured, see ``sonicverse bench vr``): pyrender's lit PBR shader costs ~5x a flat one on llvmpipe,
-so by default lighting is baked into face colours once (Lambert, one directional light + ambient) and drawn with
-the FLAT shader; multisampling (pyrender always renders 4x MSAA) and the depth read-back that a display does not
-need are optional. Both approximations are measured against the full path by ``bench vr`` (mean pixel error).
+so by default the views draw the home's look (:mod:`sonicverse_core.scene.look`: textures, and light baked per
+vertex once per home) with the FLAT shader; ``shading="pbr"`` lights the same textures per pixel with shadows (the
+GPU path), ``"baked"`` is the flat look (a colour per face, a directional light baked in) and ``"lit"`` pyrender's
+lit shader on it. Multisampling (pyrender always renders 4x MSAA) and the depth read-back that a display does not
+need are optional. Both approximations are measured against the full path by ``bench vr`` (mean pixel error), and
+the look against the flat look (frame rate).
 """
 from __future__ import annotations
-
-import types
 
 import numpy as np
 
 from app.scene.eyes import IPD, eye_offsets
 from sonicverse_core.errors import ConfigError
 from sonicverse_core.scene.furniture import turtlebot
+from sonicverse_core.scene.look import LIGHT_DIR, bake_lighting  # noqa: F401
 from sonicverse_core.scene.model import yaw_pose
 from sonicverse_core.sensors.camera import RenderScene, camera_matrix as head_matrix  # sets PYOPENGL_PLATFORM=egl
+from sonicverse_core.sensors.camera import offscreen_renderer  # noqa: F401  (re-exported)
 
 import pyrender  # noqa: E402
-import pyrender.renderer as _pr  # noqa: E402
-from OpenGL import GL  # noqa: E402
 
-LIGHT_DIR = np.array([0.35, 0.5, 0.79])  # towards the light (unit), from above
 #: room culling: on llvmpipe one merged mesh is faster for small homes (bench vr: 0.79-0.85x at 1.3k triangles),
 #: even at 85k (0.98-1.10x), and ahead at 338k (1.07x); a GPU, where memory is what culling saves, is not measured
 CULL_MIN_TRIANGLES = 250_000
@@ -46,52 +46,10 @@ class FixedCamera(pyrender.Camera):
         return self.projection
 
 
-def bake_lighting(colours: np.ndarray, normals: np.ndarray, ambient: float = 0.45) -> np.ndarray:
-    """RGBA uint8 (n, 4) face colours lit by one directional light: c * (ambient + (1 - ambient) * |n . l|) (two-
-    sided, like the interior faces a camera sees)."""
-    k = ambient + (1 - ambient) * np.abs(normals @ LIGHT_DIR / np.linalg.norm(LIGHT_DIR))
-    out = colours.astype(np.float32).copy()
-    out[:, :3] *= k[:, None]
-    return np.clip(out, 0, 255).astype(np.uint8)
-
-
-def _colour_only_reader(self, scene, flags):
-    """pyrender's read-back without the depth image (a display needs none): resolve, read RGB, flip."""
-    w, h = self._main_fb_dims
-    if self._ms:
-        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
-        GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._main_fb)
-        GL.glBlitFramebuffer(0, 0, w, h, 0, 0, w, h, GL.GL_COLOR_BUFFER_BIT, GL.GL_NEAREST)
-        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
-    else:
-        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
-    buf = GL.glReadPixels(0, 0, w, h, GL.GL_RGB, GL.GL_UNSIGNED_BYTE)
-    return np.flip(np.frombuffer(buf, np.uint8).reshape(h, w, 3), 0), None
-
-
-def _single_sample_framebuffer(self):
-    """pyrender's framebuffer set-up with plain (single-sample) storage under the multisample names: the draw and
-    the read target are then the same."""
-    orig = _pr.glRenderbufferStorageMultisample
-    _pr.glRenderbufferStorageMultisample = lambda tgt, n, fmt, w, h: GL.glRenderbufferStorage(tgt, fmt, w, h)
-    try:
-        return _pr.Renderer._configure_main_framebuffer(self)
-    finally:
-        _pr.glRenderbufferStorageMultisample = orig
-
-
-def offscreen_renderer(width: int, height: int, msaa: bool = True, colour_only: bool = False):
-    """A pyrender OffscreenRenderer; ``msaa=False`` draws single-sampled, ``colour_only`` skips the depth read-back.
-    (Both adapt pyrender 0.1.45's private framebuffer methods, pinned in requirements.txt; tests cover them.)"""
-    r = pyrender.OffscreenRenderer(width, height)
-    inner = r._renderer
-    inner._ms = msaa
-    if not msaa:
-        inner._configure_main_framebuffer = types.MethodType(_single_sample_framebuffer, inner)
-    if colour_only:
-        inner._read_main_framebuffer = types.MethodType(_colour_only_reader, inner)
-    return r
-
+#: how views are shaded: 'home' (the home's look: textures and light baked per vertex, FLAT shader; the CPU
+#: default), 'pbr' (the same textures lit per pixel by the rooms' lamps and the sun with shadows; for a GPU),
+#: 'baked' (one colour per face, a directional light baked in), 'lit' (one colour per face, pyrender's lit shader)
+SHADINGS = ("home", "pbr", "baked", "lit")
 
 AVATAR_HEIGHT = 1.75
 AVATAR_NECK = 0.82 * AVATAR_HEIGHT + 0.06  # the top of the body's neck (furniture.person)
@@ -127,12 +85,12 @@ class VisualScene:
     ``CULL_MIN_TRIANGLES`` or more, below which one merged mesh draws faster on a CPU."""
 
     def __init__(self, scene, width: int = 512, height: int = 512, yfov_deg: float = 90.0, znear: float = 0.05,
-                 zfar: float = 50.0, shading: str = "baked", msaa: bool = True, robots: int = 0,
-                 avatar: bool = True, cull_rooms: bool | str = "auto"):
+                 zfar: float = 50.0, shading: str = "home", msaa: bool = True, robots: int = 0,
+                 avatar: bool = True, cull_rooms: bool | str = "auto", texture_filter: str | None = None):
         if not (16 <= width <= 8192 and 16 <= height <= 8192) or not (10 <= yfov_deg <= 170):
             raise ConfigError("view size must be 16-8192 pixels and the field of view 10-170 degrees")
-        if shading not in ("baked", "lit"):
-            raise ConfigError(f"shading must be 'baked' or 'lit', got '{shading}'")
+        if shading not in SHADINGS:
+            raise ConfigError(f"shading must be one of {', '.join(SHADINGS)}, got '{shading}'")
         import trimesh
 
         self.core, self.width, self.height, self.shading = scene, width, height, shading
@@ -147,14 +105,20 @@ class VisualScene:
 
             self.visibility = RoomVisibility(scene)
         self.rs = RenderScene(scene, face_shading=bake_lighting if shading == "baked" else None,
-                              rooms=self.visibility is not None)
+                              rooms=self.visibility is not None,
+                              look=shading if shading in ("home", "pbr") else "flat", texture_filter=texture_filter)
         self.scene = self.rs.scene
         self.znear, self.zfar = znear, zfar
         self.camera = pyrender.PerspectiveCamera(yfov=np.radians(yfov_deg), znear=znear, zfar=zfar,
                                                  aspectRatio=width / height)
         self.cam_node = self.scene.add(self.camera, pose=np.eye(4))
         self.renderer = offscreen_renderer(width, height, msaa=msaa, colour_only=True)
-        self._flags = pyrender.RenderFlags.FLAT if shading == "baked" else pyrender.RenderFlags.SKIP_CULL_FACES
+        if shading == "pbr":
+            from sonicverse_core.sensors.camera import use_pbr_shaders
+
+            use_pbr_shaders(self.renderer)
+        self._flags = pyrender.RenderFlags.FLAT if shading in ("home", "baked") else \
+            self.rs.flags if shading == "pbr" else pyrender.RenderFlags.SKIP_CULL_FACES
         self._fixed: dict[bytes, FixedCamera] = {}
         self.avatar = {}
         if avatar:  # head, body (hidden in the user's own eyes), two hands
@@ -210,6 +174,7 @@ class VisualScene:
             self.cam_node.camera = cam
         self.scene.set_pose(self.cam_node, pose)
         self._cull(pose)
+        self.rs.place_lights(pose[:2, 3])
         self._own_body(False)
         try:
             return self.renderer.render(self.scene, flags=self._flags)[0]

@@ -119,7 +119,8 @@ def breakfast_table(w, d, h, rng) -> _Parts:
     p.add("top", WOOD_M, _box((-w / 2, -d / 2, h - 0.04), (w / 2, d / 2, h)), wood)
     if rng.random() < 0.75:
         _legs(p, w, d, h - 0.04, 0.05, WOOD_M, _shade(wood, 0.85), inset=0.05)
-        p.add("apron", WOOD_M, _box((-w / 2 + 0.07, -d / 2 + 0.07, h - 0.12), (w / 2 - 0.07, d / 2 - 0.07, h - 0.04)),
+        p.add("apron", WOOD_M, _box((-w / 2 + 0.07, -d / 2 + 0.07, h - 0.12),
+                                    (w / 2 - 0.07, d / 2 - 0.07, h - 0.041)),
               _shade(wood, 0.9))
     else:
         p.add("pedestal", METAL_M, _cyl(0, 0, 0.03, h - 0.04, 0.05), DARK)
@@ -139,16 +140,17 @@ def _cabinet(p: _Parts, w, d, h, rng, body, fronts: int, drawers: bool, top_mate
             fh = (h - 0.13) / rows
             for j in range(rows):
                 z0 = 0.09 + j * fh
-                p.add("drawer front", WOOD_M, _box((x0 + 0.005, d / 2 - 0.02, z0 + 0.005), (x0 + fw - 0.005, d / 2,
-                                                                                        z0 + fh - 0.005)),
+                p.add("drawer front", WOOD_M, _box((x0 + 0.005, d / 2 - 0.02, z0 + 0.005),
+                                                   (x0 + fw - 0.005, d / 2 - 0.004, z0 + fh - 0.005)),
                       _shade(body, 1.08))
-                p.add("handle", METAL_M, _box((x0 + fw / 2 - 0.05, d / 2 - 0.001, z0 + fh / 2 - 0.008),
+                p.add("handle", METAL_M, _box((x0 + fw / 2 - 0.05, d / 2 - 0.006, z0 + fh / 2 - 0.008),
                                               (x0 + fw / 2 + 0.05, d / 2, z0 + fh / 2 + 0.008)), METAL)
         else:
-            p.add("door front", WOOD_M, _box((x0 + 0.005, d / 2 - 0.02, 0.09), (x0 + fw - 0.005, d / 2, h - 0.04)),
+            p.add("door front", WOOD_M, _box((x0 + 0.005, d / 2 - 0.02, 0.09), (x0 + fw - 0.005, d / 2 - 0.004,
+                                                                               h - 0.04)),
                   _shade(body, 1.08))
             hx = x0 + (fw - 0.05 if k % 2 == 0 else 0.05)
-            p.add("handle", METAL_M, _box((hx - 0.008, d / 2 - 0.001, h - 0.25), (hx + 0.008, d / 2, h - 0.1)),
+            p.add("handle", METAL_M, _box((hx - 0.008, d / 2 - 0.006, h - 0.25), (hx + 0.008, d / 2, h - 0.1)),
                   METAL)
 
 
@@ -196,8 +198,11 @@ def sofa(w, d, h, rng) -> _Parts:
     fabric = _pick(rng, FABRICS)
     arm = float(rng.uniform(0.12, 0.2))
     seat = 0.42
-    p.add("base", None, _box((-w / 2, -d / 2, 0.08), (w / 2, d / 2 - 0.02, seat - 0.12)), _shade(fabric, 0.85))
-    p.add("back", None, _box((-w / 2, -d / 2, 0.08), (w / 2, -d / 2 + 0.2, h)), _shade(fabric, 0.9))
+    # base and back 2 mm inside the arms' outer faces (no coplanar faces of different shades)
+    p.add("base", None, _box((-w / 2 + 0.002, -d / 2 + 0.01, 0.08), (w / 2 - 0.002, d / 2 - 0.02, seat - 0.12)),
+          _shade(fabric, 0.85))
+    p.add("back", None, _box((-w / 2 + 0.002, -d / 2 + 0.002, 0.08), (w / 2 - 0.002, -d / 2 + 0.2, h)),
+          _shade(fabric, 0.9))
     for sx in (-1, 1):
         x0, x1 = (w / 2 - arm, w / 2) if sx > 0 else (-w / 2, -w / 2 + arm)
         p.add("arm", None, _box((x0, -d / 2, 0.08), (x1, d / 2, seat + 0.2)), _shade(fabric, 0.9))
@@ -219,15 +224,17 @@ def bed(w, d, h, rng) -> _Parts:
     sheet = _pick(rng, ((240, 240, 235), (200, 215, 230), (225, 215, 200)) + FABRICS)
     p.add("frame", WOOD_M, _box((-w / 2, -d / 2 + 0.06, 0.1), (w / 2, d / 2, 0.3)), wood)
     _legs(p, w, d - 0.06, 0.1, 0.06, WOOD_M, wood, inset=0.02)
-    p.add("mattress", FABRIC_M, _box((-w / 2 + 0.03, -d / 2 + 0.08, 0.3), (w / 2 - 0.03, d / 2 - 0.03, h)), sheet)
+    # the duvet and the pillows lie on the mattress (their tops above its top: no coplanar faces to fight in depth)
+    p.add("mattress", FABRIC_M, _box((-w / 2 + 0.03, -d / 2 + 0.08, 0.3), (w / 2 - 0.03, d / 2 - 0.03, h - 0.04)),
+          sheet)
     p.add("headboard", WOOD_M, _box((-w / 2, -d / 2, 0.1), (w / 2, -d / 2 + 0.06, h)), _shade(wood, 0.9))
     n = 2 if w > 1.2 else 1
     pw = (w - 0.2) / n
     for k in range(n):
         x0 = -w / 2 + 0.1 + k * pw
-        p.add("pillow", FABRIC_M, _box((x0 + 0.03, -d / 2 + 0.12, h - 0.02), (x0 + pw - 0.03, -d / 2 + 0.5, h)),
+        p.add("pillow", FABRIC_M, _box((x0 + 0.03, -d / 2 + 0.12, h - 0.09), (x0 + pw - 0.03, -d / 2 + 0.5, h)),
               (245, 245, 240))
-    p.add("duvet", FABRIC_M, _box((-w / 2 + 0.02, -d / 2 + 0.6, h - 0.03), (w / 2 - 0.02, d / 2 - 0.02, h)),
+    p.add("duvet", FABRIC_M, _box((-w / 2 + 0.02, -d / 2 + 0.6, h - 0.07), (w / 2 - 0.02, d / 2 - 0.02, h)),
           _pick(rng, FABRICS))
     return p
 
@@ -271,13 +278,13 @@ def sink(w, d, h, rng) -> _Parts:
 def toilet(w, d, h, rng) -> _Parts:
     p = _Parts()
     tank = 0.18
-    p.add("tank", CERAMIC_M, _box((-w / 2, -d / 2, 0.4), (w / 2, -d / 2 + tank, h)), CERAMIC)
+    p.add("tank", CERAMIC_M, _box((-w / 2, -d / 2, 0.4), (w / 2, -d / 2 + tank, h - 0.004)), CERAMIC)
     p.add("base", CERAMIC_M, _box((-0.12, -d / 2 + 0.08, 0), (0.12, d / 2 - 0.12, 0.3)), CERAMIC)
     p.add("bowl", CERAMIC_M, _box((-w / 2 + 0.02, -d / 2 + tank - 0.02, 0.3), (w / 2 - 0.02, d / 2 - 0.02, 0.4)),
           CERAMIC)
     p.add("seat", "PlywoodPanel", _box((-w / 2 + 0.01, -d / 2 + tank, 0.4), (w / 2 - 0.01, d / 2, 0.42)),
           _pick(rng, (CERAMIC, (30, 30, 30), (200, 180, 150))))
-    p.add("flush", METAL_M, _box((-0.03, -d / 2 + 0.06, h - 0.002), (0.03, -d / 2 + 0.1, h)), METAL)
+    p.add("flush", METAL_M, _box((-0.03, -d / 2 + 0.06, h - 0.006), (0.03, -d / 2 + 0.1, h)), METAL)
     return p
 
 
@@ -285,8 +292,8 @@ def standing_tv(w, d, h, rng) -> _Parts:
     p = _Parts()
     stand_h = float(rng.uniform(0.4, 0.5))
     wood = _pick(rng, WOODS + ((40, 40, 42),))
-    p.add("stand", WOOD_M, _box((-w / 2, -d / 2, 0), (w / 2, d / 2, stand_h)), wood)
-    p.add("shelf line", WOOD_M, _box((-w / 2 + 0.02, d / 2 - 0.005, stand_h / 2 - 0.01), (w / 2 - 0.02, d / 2,
+    p.add("stand", WOOD_M, _box((-w / 2, -d / 2, 0), (w / 2, d / 2 - 0.004, stand_h)), wood)
+    p.add("shelf line", WOOD_M, _box((-w / 2 + 0.02, d / 2 - 0.006, stand_h / 2 - 0.01), (w / 2 - 0.02, d / 2,
                                                                                          stand_h / 2 + 0.01)),
           _shade(wood, 0.7))
     sw = min(w * 0.9, 1.1)
@@ -319,7 +326,8 @@ def bathtub(w, d, h, rng) -> _Parts:
     if rng.random() < 0.3:
         p.add("water", "WaterOrIceSurface", _box((-w / 2 + rim, -d / 2 + rim, 0.12), (w / 2 - rim, d / 2 - rim,
                                                                                       0.14)), (190, 215, 230))
-    p.add("tap", METAL_M, _box((-w / 2 + 0.12, -d / 2, h - 0.05), (-w / 2 + 0.18, -d / 2 + 0.05, h)), METAL)
+    p.add("tap", METAL_M, _box((-w / 2 + 0.12, -d / 2 + 0.03, h - 0.09), (-w / 2 + 0.18, -d / 2 + rim + 0.05,
+                                                                          h - 0.03)), METAL)  # a spout
     return p
 
 

@@ -11,9 +11,24 @@ from sonicverse_core.scene.model import Door, Scene
 VERTEX_BYTES = 4 * (3 + 3 + 4)  # pyrender's flat-shaded vertex: position, normal, colour (float32)
 
 
-def scene_info(scene: Scene, nav_area: float | None = None) -> dict:
+def _look_info(scene: Scene) -> dict:
+    """The home's look (baked or from the cache): triangles after cutting at the texture grid, the vertex buffers
+    (position, normal, uv, colour: 48 bytes a vertex), the texture atlas with its mipmaps, the bake's seconds."""
+    from sonicverse_core.scene.look import atlas, home_look
+
+    lk = home_look(scene)
+    img, _ = atlas()
+    return {"triangles": lk.triangles, "vertex_bytes": lk.vertex_bytes, "vertex_mib": round(lk.vertex_bytes / 2**20, 3),
+            "texture": f"{img.shape[1]}x{img.shape[0]} RGBA8 + mipmaps", "texture_bytes": lk.texture_bytes,
+            "texture_mib": round(lk.texture_bytes / 2**20, 3),
+            "total_mib": round((lk.vertex_bytes + lk.texture_bytes) / 2**20, 3),
+            "bake_s": round(lk.bake_s, 3), "from_cache": lk.cached}
+
+
+def scene_info(scene: Scene, nav_area: float | None = None, look: bool = True) -> dict:
     """Rooms, objects per category, materials with their surface areas (m^2: the structure's and every object
-    part's), floor area, bounds, triangles, and the look's size in the renderer (``visual``)."""
+    part's), floor area, bounds, triangles, and the look's size in the renderer (``visual``: the flat look;
+    ``look``: the home's textured look with baked light, what the cameras and the VR views draw)."""
     areas: Counter = Counter()
     for p in scene.static:
         areas[p.material] += float(p.mesh.area)
@@ -43,6 +58,7 @@ def scene_info(scene: Scene, nav_area: float | None = None) -> dict:
         # another)
         "visual": {"triangles": tris, "object_parts": parts, "buffer_bytes": VERTEX_BYTES * 3 * tris,
                    "buffer_mib": round(VERTEX_BYTES * 3 * tris / 2**20, 3)},
+        "look": _look_info(scene) if look else None,
         "metadata": {k: v for k, v in scene.metadata.items() if isinstance(v, (int, float, str, list))},
     }
     if nav_area is not None:
