@@ -127,6 +127,9 @@ class SpeakerBelief:
     FORGET = 0.97
     FRAME = 128  # samples (8 ms at 16 kHz): onset frames short enough to end before the first reflections
     ONSET = 1.0  # onset weights (log10 energy rise - 0.3) below this carry reflections, not the direction
+    # the floor seen empty is cleared only this far (m) in front of what the camera sees: a person's centre lies
+    # ~0.12 m behind the front of its torso (0.2 m behind the old cylinder body), never in the cleared floor
+    BODY_DEPTH = 0.15
 
     def __init__(self, grid, sample_rate: int, cell: float = 0.2, mouth_above_ears: float = 1.03):
         from scipy.sparse import coo_matrix
@@ -256,7 +259,7 @@ class SpeakerBelief:
         half = math.degrees(math.atan((W / 2) / fx)) - 3.0
         inview = (np.abs(ang) < half) & (dist > 0.6) & (dist < 6.0)
         u = np.clip(np.round(W / 2 - fx * np.tan(np.radians(np.where(inview, ang, 0.0)))).astype(int), 0, W - 1)
-        empty = inview & (dist * np.cos(np.radians(ang)) - 0.1 < col[u])
+        empty = inview & (dist * np.cos(np.radians(ang)) + self.BODY_DEPTH < col[u])  # clearly in front
         self.belief[0, empty] *= 0.2
         self.belief[:, dist < 0.4] *= 0.1  # nobody stands where the robot is
         a = np.arctan(-(np.arange(W) - W / 2 + 0.5) / fx)

@@ -340,6 +340,9 @@ def test_scripted_followers_senses():
     w.pose = np.array([*w.pose[:2], math.degrees(math.atan2(d[1], d[0])) + 10.0])  # the person 10 deg to the right
     depth = env._camera().render(*w.camera)["depth"]
     fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
+    from sonicverse_core.world.person import person_mesh
+
+    assert env._actors["person"][0] is person_mesh(p.cfg.height, p.cfg.radius)  # the body of parts, not a cylinder
     env.close()
     b = SpeakerBelief(env.task.map.grid, 16000)
     behind = b.xy[int(np.argmax(np.hypot(*(b.xy - p.pos).T)))]  # the farthest place: out of view

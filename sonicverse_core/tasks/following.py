@@ -34,7 +34,7 @@ import numpy as np
 from sonicverse_core.errors import ConfigError
 from sonicverse_core.tasks.base import SemanticMap, Task
 from sonicverse_core.tasks.episodes import JsonRecord
-from sonicverse_core.world.person import Person, PersonConfig, body_mesh, polyline_points, speech_track
+from sonicverse_core.world.person import Person, PersonConfig, body_mesh, person_mesh, polyline_points, speech_track
 
 BAND = (1.0, 2.5)
 LOST = 5.0
@@ -132,7 +132,7 @@ class SpeakerFollowing(Task):
                                       p.cfg, ep.voice)
         env.source = env.add_sound(track, loop=False, position=p.mouth, directivity=p.cfg.directivity,
                                    forward=p.forward)
-        env.add_actor("person", body_mesh(p.cfg.height, p.cfg.radius))
+        env.add_actor("person", person_mesh(p.cfg.height, p.cfg.radius))
         env.move_actor("person", p.pose)
         self.distances: list[float] = []
         self.walking: list[bool] = []  # per step: the person had not yet stopped at the end of the route

@@ -45,7 +45,7 @@ import numpy as np
 from sonicverse_core.errors import ActionError, ConfigError
 from sonicverse_core.tasks.base import SemanticMap, Task
 from sonicverse_core.tasks.episodes import JsonRecord
-from sonicverse_core.world.person import SPEEDS, VOICES, PersonConfig, body_mesh, utterance
+from sonicverse_core.world.person import SPEEDS, VOICES, PersonConfig, body_mesh, person_mesh, utterance
 
 CALLS = ("over here", "i am over here", "here please", "bring it here")
 #: how a person asks for an object, and names each category of the homes (the recogniser's vocabulary too)
@@ -167,7 +167,7 @@ class VoiceRetrieval(Task):
                                    directivity=pc.directivity, forward=fwd)
         self.calls = env.add_sound(_track(seconds, sr, call, self.call_s, 0.0), loop=False, position=mouth,
                                    directivity=pc.directivity, forward=fwd, gain=0.0)
-        env.add_actor("person", body_mesh(pc.height, pc.radius))
+        env.add_actor("person", person_mesh(pc.height, pc.radius))
         pose = np.eye(4)
         pose[:3, 3] = (self.person_xy[0], self.person_xy[1], z)
         env.move_actor("person", pose)

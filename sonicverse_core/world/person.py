@@ -112,6 +112,22 @@ def polyline_points(path: np.ndarray, spacing: float = 0.1, metres: float = np.i
 
 
 @lru_cache(maxsize=8)
+def person_mesh(height: float, radius: float, shirt=(70, 100, 150)):
+    """A person's body built from parts (legs, shoes, hips, torso, shoulders, arms, hands, neck, head, hair, nose:
+    :func:`sonicverse_core.scene.furniture.person`) as one mesh with its parts' face colours, in the local frame of
+    :func:`body_mesh` (feet at z = 0, facing +x): what the robot's camera sees of the person."""
+    import trimesh
+
+    from sonicverse_core.scene.furniture import person
+
+    parts = person(height, radius, shirt=shirt)
+    mesh = trimesh.util.concatenate([p.mesh for p in parts])
+    mesh.visual.face_colors = np.concatenate([np.tile(np.asarray(p.colour, np.uint8), (len(p.mesh.faces), 1))
+                                              for p in parts])
+    return mesh
+
+
+@lru_cache(maxsize=8)
 def body_mesh(height: float, radius: float):
     """A person's body in its local frame (feet at z = 0, facing +x): legs and torso as a capsule-like cylinder, a
     head, and a nose that shows which way it faces."""
