@@ -6,7 +6,8 @@ class plays each (name, task).
 from __future__ import annotations
 
 _NAV = {"random": "agents.scripted:RandomAgent", "oracle": "agents.scripted:OracleAgent",
-        "gan": "agents.scripted:GanAgent"}
+        "gan": "agents.scripted:GanAgent", "av-nav": "agents.learned:AVNavAgent"}
+LEARNED = {"av-nav"}  # agents that load a checkpoint (``checkpoint=``; default agents/checkpoints/ARCH_TASK.pt)
 IMPLEMENTATIONS = {
     "AudioGoal": _NAV, "AudioPointGoal": _NAV, "SemanticAudioNav": _NAV,
     "SpeakerFollowing": {"random": "agents.scripted:RandomAgent", "oracle": "agents.following:OracleFollower",
@@ -16,13 +17,25 @@ IMPLEMENTATIONS = {
 }
 
 
-def make_agent(name: str, rng=None, task: str = "AudioGoal"):
-    """The agent ``name`` for ``task`` (a name, command-line name or id from the registry)."""
+def make_agent(name: str, rng=None, task: str = "AudioGoal", checkpoint=None):
+    """The agent ``name`` for ``task`` (a name, command-line name or id from the registry), or a user's own policy
+    given as ``module:callable`` (called with the Generator; it must offer ``reset(env, obs, info)`` and
+    ``act(obs, info)``, and may offer ``env_kwargs()``). Learned agents load ``checkpoint`` (default: the shipped
+    one for the task)."""
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks.registry import load, task_spec
 
     spec = task_spec(task)
+    if ":" in name:
+        try:
+            return load(name)(rng)
+        except (ImportError, AttributeError, ValueError) as exc:
+            raise ConfigError(f"cannot load agent '{name}': {exc}") from None
     impl = IMPLEMENTATIONS.get(spec.name, {})
-    if name not in spec.agents or name not in impl:
-        raise ConfigError(f"unknown agent '{name}' for {spec.cli}; use one of {', '.join(spec.agents)}")
+    listed = name in spec.agents or (name in LEARNED and checkpoint is not None)  # a task without a shipped one
+    if not listed or name not in impl:
+        raise ConfigError(f"unknown agent '{name}' for {spec.cli}; use one of {', '.join(spec.agents)} "
+                          "(or module:callable)")
+    if name in LEARNED:
+        return load(impl[name])(rng, checkpoint=checkpoint, task=spec.name)
     return load(impl[name])(rng)

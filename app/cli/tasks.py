@@ -10,7 +10,7 @@ from app.cli import args as A
 def cmd_eval(a) -> int:
     from app.tasks.evaluate import run_eval
 
-    csv_path = a.csv or f"out/eval/{a.task}_{a.agent}_{a.split}_{a.sounds}_s{a.seed}.csv"
+    csv_path = a.csv or f"out/eval/{a.task}_{a.agent.replace(':', '.')}_{a.split}_{a.sounds}_s{a.seed}.csv"
     kw = {}
     if a.homes is not None:
         kw["homes"] = a.homes
@@ -23,7 +23,7 @@ def cmd_eval(a) -> int:
                   f"sna {row['sna']:.2f} steps {row['steps']}", file=sys.stderr)
 
     res = run_eval(a.task, a.agent, a.episodes, split=a.split, sounds=a.sounds, seed=a.seed, csv_path=csv_path,
-                   maps=a.maps, video=a.video, env_kwargs=kw, progress=progress)
+                   maps=a.maps, video=a.video, env_kwargs=kw, progress=progress, checkpoint=a.checkpoint)
     if a.json:
         print(json.dumps(res))
     else:
@@ -32,6 +32,21 @@ def cmd_eval(a) -> int:
             ci = f"[{lo:.3f}, {hi:.3f}]" if lo is not None else "[n/a]"
             print(f"{k:>16}: {res[k]['mean']:.3f}  95% CI {ci}")
         print(f"per-episode CSV: {res['csv']}")
+    return 0
+
+
+def cmd_train(a) -> int:
+    from agents.imitation import ImitationConfig, train
+
+    cfg = ImitationConfig(task=a.task, frames=a.frames, iterations=a.iterations, size=a.size,
+                          val_episodes=a.val_episodes, seed=a.seed)
+
+    def progress(row):
+        if not a.json:
+            print(" ".join(f"{k} {v}" for k, v in row.items()), file=sys.stderr)
+
+    res = train(cfg, a.out, progress=progress)
+    print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
 
 
@@ -208,7 +223,10 @@ def add_task_commands(sub, bench_sub) -> None:
                        description="Run an agent over N episodes; print SR, SPL, SNA and distance to goal with 95% "
                        "confidence intervals; write a per-episode CSV.")
     e.add_argument("--task", required=True, choices=TASK_NAMES, help="the navigation task")
-    e.add_argument("--agent", required=True, choices=("random", "oracle", "gan"), help="the agent to score")
+    e.add_argument("--agent", required=True, metavar="AGENT",
+                   help="random, oracle, gan, av-nav (a learned policy), or module:callable (your own policy)")
+    e.add_argument("--checkpoint", default=None, type=A.in_file(".pt"),
+                   help="a learned agent's checkpoint (default: the shipped agents/checkpoints/ARCH_TASK.pt)")
     e.add_argument("--episodes", type=A.count(1, 100_000), default=20, help="number of episodes (default: %(default)s)")
     e.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")
     e.add_argument("--sounds", default="heard", choices=("heard", "unheard"), help="sound set (default: heard)")
@@ -220,6 +238,22 @@ def add_task_commands(sub, bench_sub) -> None:
     e.add_argument("--video", default=None, metavar="DIR", type=A.out_dir, help="write frames (PNG) + audio (WAV) per episode")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=cmd_eval)
+
+    t = sub.add_parser("train", help="train a learned agent: imitation of the shortest-path oracle (DAgger)",
+                       description="Behaviour cloning with DAgger on train homes and heard sounds; validation SR/SPL "
+                       "on val homes each iteration; a checkpoint (model.pt) and a CSV log (log.csv) in --out.")
+    t.add_argument("--agent", default="av-nav", choices=("av-nav",), help="the model (default: %(default)s)")
+    t.add_argument("--task", default="AudioGoal", choices=("AudioGoal", "SemanticAudioNav"),
+                   help="the task (default: %(default)s)")
+    t.add_argument("--frames", type=A.count(100, 10**9), default=20_000, help="environment frames (default: %(default)s)")
+    t.add_argument("--iterations", type=A.count(1, 100_000), default=10, help="DAgger iterations (default: %(default)s)")
+    t.add_argument("--size", type=A.count(40, 256), default=64, help="depth image side (default: %(default)s)")
+    t.add_argument("--val-episodes", type=A.count(0, 10_000), default=8,
+                   help="validation episodes per iteration (default: %(default)s)")
+    t.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
+    t.add_argument("--out", default="out/train", type=A.out_dir, help="output folder (default: %(default)s)")
+    t.add_argument("--json", action="store_true", help="print one JSON object")
+    t.set_defaults(func=cmd_train)
 
     b = bench_sub.add_parser("env", help="environment steps/s: one env and N workers, with a breakdown")
     b.add_argument("--task", default="AudioGoal", choices=TASK_NAMES, help="task (default: %(default)s)")

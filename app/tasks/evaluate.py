@@ -33,13 +33,15 @@ def make_env(task: str, **kwargs):
 
 def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: str = "heard", seed: int = 0,
              csv_path: str | Path | None = None, maps: str | Path | None = None, video: str | Path | None = None,
-             env_kwargs: dict | None = None, progress=None) -> dict:
+             env_kwargs: dict | None = None, progress=None, checkpoint=None) -> dict:
     from agents import make_agent
     from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
 
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
     kw = dict(env_kwargs or {})
+    probe = make_agent(agent, np.random.default_rng(seed), task, checkpoint=checkpoint)  # fails early, names its env
+    kw.update(getattr(probe, "env_kwargs", lambda: {})())
     if video:
         kw.setdefault("render_mode", "rgb_array")
     env = make_env(task, split=split, sounds=sounds, **kw)
@@ -50,7 +52,7 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
         for i in bar(range(episodes), desc=f"{task} {agent}", enabled=progress is not None):
             s = episode_seed(seed, i)
             obs, info = env.reset(seed=s)
-            ag = make_agent(agent, np.random.default_rng(s), task)
+            ag = make_agent(agent, np.random.default_rng(s), task, checkpoint=checkpoint)
             ag.reset(env, obs, info)
             ep = env.episode
             traj = [env.home.world.pose[:2].copy()]

@@ -42,7 +42,7 @@ def load(ref: str):
 
 TASKS: dict[str, TaskSpec] = {s.name: s for s in (
     TaskSpec("AudioGoal", "audio-goal", "embodied", "sonicverse_core.tasks.nav:AudioGoal",
-             ("oracle", "gan", "random"), NAV_METRICS, ("sr",), env_id="Sonicverse/AudioGoal-v0",
+             ("oracle", "gan", "random", "av-nav"), NAV_METRICS, ("sr",), env_id="Sonicverse/AudioGoal-v0",
              summary="go to the sounding object (depth + binaural audio)"),
     TaskSpec("AudioPointGoal", "audio-point-goal", "embodied", "sonicverse_core.tasks.nav:AudioPointGoal",
              ("oracle", "gan", "random"), NAV_METRICS, ("sr",), env_id="Sonicverse/AudioPointGoal-v0",
