@@ -290,11 +290,11 @@ class AudioCore:
             outdata.fill(0.0)
             if self.mic is not None and not mic_written:  # the mic ring stays in step with the frame counter
                 sh.mic.write(self.zero_in[:, :1].T)
-            tele[C.ERRORS] += 1
-            try:
+            try:  # the message first, then the count the engine polls: it never reads a count without its text
                 sh.set_error(f"{type(exc).__name__}: {exc}")
             except Exception:  # noqa: BLE001
                 pass
+            tele[C.ERRORS] += 1
         self.frames += frames
         tele[C.FRAMES] = self.frames
         tele[C.CALLBACKS] += 1

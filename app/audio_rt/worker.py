@@ -169,8 +169,8 @@ def run_robots(conn, cfg, scene_setup, shm_path: str) -> None:
         except Exception as exc:  # noqa: BLE001 - reported like a callback error; the robots hear silence
             for ring in sh.ears[1:]:
                 ring.write(np.zeros((2, B), np.float32))
+            sh.set_error(f"robot listeners: {type(exc).__name__}: {exc}")  # the text before the count (see core)
             sh.tele[C.ERRORS] += 1
-            sh.set_error(f"robot listeners: {type(exc).__name__}: {exc}")
         done += B
         sh.tele[C.ROBOT_BLOCKS] += 1
 
