@@ -229,15 +229,18 @@ def test_killed_in_a_trial_loses_at_most_that_trial_and_resumes(tmp_path, sig):
     store = StudyStore(data)
     plan = store.plan("K1", 1)
     done = sorted(store.finished_slots("K1", 1))
-    assert running not in done and len(done) >= 4
-    assert done == list(range(len(done)))  # in order, none lost before the running one
+    assert done == list(range(len(done))) and len(done) >= 4  # in order, none lost before the running one
+    # the trial seen running may have finished (and been committed) before the signal landed: then the next one ran
+    first_open = len(done)
+    assert first_open in (running, running + 1), (running, done)
     csv_path = data / "K1" / "session-1" / "trials.csv"
     assert _csv_slots(csv_path, store, "K1", 1) == done  # every committed trial in the CSV exactly once
     order = store.order("K1", 1)
     if sig == signal.SIGTERM:  # a clean stop: one line, the running trial marked aborted
         assert proc.returncode == 2 and err.strip().splitlines()[-1].startswith("sonicverse: error:"), err
         assert "study resume" in err and "Traceback" not in err
-        assert any(e["kind"] == "aborted" and e["slot"] == running for e in store.events("K1", 1))
+        aborted = [e["slot"] for e in store.events("K1", 1) if e["kind"] == "aborted"]
+        assert aborted in ([first_open], []) and (aborted or first_open != running), aborted  # none: between trials
     else:
         assert proc.returncode == -signal.SIGKILL
     # a second run refuses (unfinished), resume completes with no duplicate and the same order
@@ -251,7 +254,7 @@ def test_killed_in_a_trial_loses_at_most_that_trial_and_resumes(tmp_path, sig):
     assert _csv_slots(csv_path, store, "K1", 1) == [s.slot for s in plan]
     assert store.session("K1", 1)["status"] == "finished"
     resumes = [e for e in store.events("K1", 1) if e["kind"] == "resume"]
-    assert len(resumes) == 1 and json.loads(resumes[0]["detail"])["first_slot"] == running
+    assert len(resumes) == 1 and json.loads(resumes[0]["detail"])["first_slot"] == first_open
 
 
 def test_a_csv_behind_the_database_is_rewritten(tmp_path):
