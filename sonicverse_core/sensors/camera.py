@@ -206,7 +206,7 @@ class RenderScene:
         # 'flat': one colour per face, lit by pyrender (or by ``face_shading``)
         self.look = look
         self.home = None
-        self._atlas_mat = None
+        self._atlas_mat = self._plain_mat = None  # made on first use, shared by this scene's primitives
         # the atlas' minification filter: 'bilinear' (within the nearest mip level; the CPU path: trilinear costs
         # ~1.5x the frame time at 2 x 512^2 on llvmpipe, `bench vr`) or 'trilinear' (between levels; the GPU path)
         self.texture_filter = texture_filter or ("trilinear" if look == "pbr" else "bilinear")
@@ -340,7 +340,7 @@ class RenderScene:
         return np.repeat(out, 3)
 
     def _plain_material(self):
-        if getattr(self, "_plain_mat", None) is None:
+        if self._plain_mat is None:
             import pyrender
 
             from sonicverse_core.scene.look import TEXTURE_MEAN
