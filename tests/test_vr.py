@@ -451,7 +451,8 @@ def test_culled_views_match_the_whole_scene_and_unload_hidden_rooms():
     from sonicverse_core.scene.spec import load_scene
 
     r = room_culling(HOUSE, size=(128, 128), poses=12, reps=1)
-    assert r["background_where_whole_has_a_surface"] == 0 and r["pixels_differing_max"] < 1e-3, r
+    # no other surface in any view (the light on coplanar copies of a wall may differ by a few levels, see FAR_LEVELS)
+    assert r["background_where_whole_has_a_surface"] == 0 and r["pixels_differing_over_far_levels_max"] < 1e-3, r
     assert r["triangles_drawn_mean"] < r["triangles_whole"]
     sc = load_scene(HOUSE)
     v = VisualScene(sc, 64, 64, cull_rooms=True, avatar=False)
