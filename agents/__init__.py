@@ -1,4 +1,4 @@
-"""Agents: scripted baselines (random, oracle, gan, the speaker followers) and learned policies (torch).
+"""Agents: scripted baselines (random, oracle, gan and gan-itd, the speaker followers) and learned policies (torch).
 
 The registry (:mod:`sonicverse_core.tasks.registry`) says which agent names a task takes; this table says which
 class plays each (name, task).
@@ -6,8 +6,10 @@ class plays each (name, task).
 from __future__ import annotations
 
 _NAV = {"random": "agents.scripted:RandomAgent", "oracle": "agents.scripted:OracleAgent",
-        "gan": "agents.scripted:GanAgent", "av-nav": "agents.learned:AVNavAgent"}
-LEARNED = {"av-nav"}  # agents that load a checkpoint (``checkpoint=``; default agents/checkpoints/ARCH_TASK.pt)
+        "gan": "agents.scripted:GanAgent", "gan-itd": "agents.scripted:GanItdAgent",
+        "av-nav": "agents.learned:AVNavAgent", "av-nav-greedy": "agents.learned:AVNavGreedy"}
+# agents that load a checkpoint (``checkpoint=``; default agents/checkpoints/ARCH_TASK.pt)
+LEARNED = {"av-nav", "av-nav-greedy"}
 IMPLEMENTATIONS = {
     "AudioGoal": _NAV, "AudioPointGoal": _NAV, "SemanticAudioNav": _NAV,
     "SpeakerFollowing": {"random": "agents.scripted:RandomAgent", "oracle": "agents.following:OracleFollower",

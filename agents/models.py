@@ -2,11 +2,24 @@
 
 :class:`AVNav`: the audio-visual navigation policy of SoundSpaces (Chen et al. 2020): a CNN over the depth image, a
 CNN over the binaural spectrogram, the odometry pose, a GRU over time, and an actor-critic head. The action is the
-TurtleBot's two wheel velocities in [-1, 1] (plus a stop output on tasks that have one): a Gaussian whose mean is
-squashed by tanh, with a learned log standard deviation (used by PPO; imitation and evaluation use the mean).
+TurtleBot's two wheel velocities in [-1, 1] (plus a stop output on tasks that have one), from one of two heads:
+
+* ``continuous``: a Gaussian whose mean is squashed by tanh, with a learned log standard deviation (used by PPO;
+  imitation and evaluation use the mean);
+* ``discrete`` (``AVNavConfig.primitives``): a categorical over a fixed set of wheel-velocity pairs (straight ahead
+  at three speeds, veering at four strengths each way, turning on the spot at two rates each way, standing still;
+  plus a stop on tasks that have one). Behaviour cloning fits it with cross-entropy, so where the expert turns left
+  in some states and right in similar ones the policy picks one, where the continuous head's mean averages them into
+  driving straight on.
+
+With ``aux_goal`` the model also predicts where the goal is from the robot (cosine and sine of its bearing,
+log(1 + distance)): from the GRU's state (what it has heard and seen so far) and from the current spectrogram alone.
+These heads are trained beside the policy on the privileged goal position (an auxiliary loss, as SAVi's goal
+predictor) and are not used to act.
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import asdict, dataclass
 
 import torch
@@ -23,6 +36,38 @@ class AVNavConfig:
     pose_dim: int = 4
     action_dim: int = 2
     hidden: int = 256
+    primitives: tuple = ()  # () : the continuous head; else the discrete head's wheel-velocity pairs (+ stop)
+    aux_goal: bool = False  # the goal-prediction heads (auxiliary loss)
+
+
+def primitives_for(action_dim: int) -> tuple:
+    """The discrete head's actions in wheel-velocity units: straight ahead at full, half and quarter speed, veering
+    (the inner wheel at 0.75 .. 0 of the outer), turning on the spot at half and a quarter of full speed, standing
+    still; with a stop component (action_dim 3) its stop (+1) and, on every other action, -1. The shortest-path
+    expert's actions lie within 0.13 of one of them (its turns on the spot run at the robot's turn-rate limit, 0.52:
+    tested)."""
+    pairs = [(1.0, 1.0), (0.5, 0.5), (0.25, 0.25)]
+    for r in (0.75, 0.5, 0.25, 0.0):
+        pairs += [(r, 1.0), (1.0, r)]
+    pairs += [(-0.5, 0.5), (0.5, -0.5), (-0.25, 0.25), (0.25, -0.25), (0.0, 0.0)]
+    if action_dim == 2:
+        return tuple(pairs)
+    if action_dim == 3:
+        return tuple((l, r, -1.0) for l, r in pairs) + ((0.0, 0.0, 1.0),)
+    raise ValueError(f"no discrete actions for action_dim {action_dim}")
+
+
+@contextlib.contextmanager
+def acting_threads(n: int = 1):
+    """Torch on ``n`` threads inside the block. Acting runs the model on a batch of one between environment steps;
+    with torch's default threads its OpenMP workers spin after every step and take the cores from the renderer
+    (`sonicverse bench train`: the env's step 1.36 -> 2.49 ms, rollouts 420 -> 286 frames/s on 2 cores)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 def _cnn(in_ch: int, hw: tuple, out: int, k=(8, 4, 3), s=(4, 2, 1)) -> nn.Sequential:
@@ -37,65 +82,122 @@ def _cnn(in_ch: int, hw: tuple, out: int, k=(8, 4, 3), s=(4, 2, 1)) -> nn.Sequen
 
 class AVNav(nn.Module):
     """``forward(depth (T, B, H, W, 1), spec (T, B, 2, F, W), pose (T, B, 4), hidden (1, B, H), starts (T, B))`` ->
-    (action mean (T, B, A) in [-1, 1], value (T, B), hidden). ``starts`` marks each episode's first step: the GRU's
-    state is zeroed there."""
+    (action (T, B, A), value (T, B), hidden): the mean in [-1, 1] (continuous head) or the logits over
+    ``cfg.primitives`` (discrete head); :meth:`act` turns either into wheel velocities. ``starts`` marks each
+    episode's first step: the GRU's state is zeroed there."""
 
     def __init__(self, cfg: AVNavConfig = AVNavConfig()):
         super().__init__()
         self.cfg = cfg
         h = cfg.hidden
-        self.depth = _cnn(1, cfg.depth_hw, h)
+        self.depth = _cnn(1, cfg.depth_hw, h) if cfg.depth_hw else None  # () : an audio-only policy
         self.audio = _cnn(cfg.spec_shape[0], cfg.spec_shape[1:], h, k=(5, 3, 3), s=(2, 2, 1))
-        self.gru = nn.GRU(2 * h + cfg.pose_dim, h)
-        self.actor = nn.Linear(h, cfg.action_dim)
+        self.gru = nn.GRU((2 if cfg.depth_hw else 1) * h + cfg.pose_dim, h)
+        self.discrete = len(cfg.primitives) > 0
+        self.actor = nn.Linear(h, len(cfg.primitives) if self.discrete else cfg.action_dim)
         self.critic = nn.Linear(h, 1)
-        self.log_std = nn.Parameter(torch.full((cfg.action_dim,), -0.5))
+        if self.discrete:
+            self.register_buffer("table", torch.tensor(cfg.primitives, dtype=torch.float32), persistent=False)
+        else:
+            self.log_std = nn.Parameter(torch.full((cfg.action_dim,), -0.5))
+        if cfg.aux_goal:
+            self.goal_head = nn.Linear(h, 3)  # from the GRU's state
+            self.goal_audio = nn.Linear(h, 3)  # from the current spectrogram alone
 
     def initial_state(self, batch: int) -> torch.Tensor:
         return torch.zeros(1, batch, self.cfg.hidden)
 
-    def encode(self, depth, spec, pose) -> torch.Tensor:
-        T, B = depth.shape[:2]
-        d = (depth.reshape(T * B, *depth.shape[2:]).permute(0, 3, 1, 2).float() / DEPTH_MAX).clamp(0, 1)
-        a = (spec.reshape(T * B, *spec.shape[2:]).float() / SPEC_MAX).clamp(0, 1)
-        x = torch.cat([self.depth(d), self.audio(a), pose.reshape(T * B, -1).float()], 1)
-        return x.reshape(T, B, -1)
+    def encode(self, depth, spec, pose) -> tuple[torch.Tensor, torch.Tensor]:
+        """``depth`` may be None for an audio-only policy."""
+        T, B = spec.shape[:2]
+        a = self.audio((spec.reshape(T * B, *spec.shape[2:]).float() / SPEC_MAX).clamp(0, 1))
+        parts = [a, pose.reshape(T * B, -1).float()]
+        if self.depth is not None:
+            d = (depth.reshape(T * B, *depth.shape[2:]).permute(0, 3, 1, 2).float() / DEPTH_MAX).clamp(0, 1)
+            parts.insert(0, self.depth(d))
+        return torch.cat(parts, 1).reshape(T, B, -1), a.reshape(T, B, -1)
 
-    def forward(self, depth, spec, pose, hidden, starts):
-        x = self.encode(depth, spec, pose)
+    def features(self, depth, spec, pose, hidden, starts):
+        """(GRU outputs (T, B, H), audio features (T, B, H), the last hidden state)."""
+        x, a = self.encode(depth, spec, pose)
+        starts = starts.float()
+        if x.shape[0] == 1 or not bool(starts[1:].any()):  # no episode starts inside: one call over the sequence
+            y, hidden = self.gru(x, hidden * (1.0 - starts[0]).view(1, -1, 1))
+            return y, a, hidden
         outs = []
         for t in range(x.shape[0]):  # reset the state at episode starts (sequences may span episodes)
-            hidden = hidden * (1.0 - starts[t].float()).view(1, -1, 1)
+            hidden = hidden * (1.0 - starts[t]).view(1, -1, 1)
             o, hidden = self.gru(x[t:t + 1], hidden)
             outs.append(o)
-        y = torch.cat(outs, 0)
-        return torch.tanh(self.actor(y)), self.critic(y).squeeze(-1), hidden
+        return torch.cat(outs, 0), a, hidden
+
+    def head(self, y) -> torch.Tensor:
+        return self.actor(y) if self.discrete else torch.tanh(self.actor(y))
+
+    def forward(self, depth, spec, pose, hidden, starts):
+        y, _, hidden = self.features(depth, spec, pose, hidden, starts)
+        return self.head(y), self.critic(y).squeeze(-1), hidden
+
+    def act(self, out: torch.Tensor) -> torch.Tensor:
+        """Wheel velocities (+ stop) from :meth:`forward`'s action output: the mean, or the most likely primitive."""
+        return self.table[out.argmax(-1)] if self.discrete else out
+
+    def label(self, actions: torch.Tensor) -> torch.Tensor:
+        """The discrete head's class for each action: the nearest primitive."""
+        return torch.cdist(actions.reshape(-1, actions.shape[-1]).float(), self.table).argmin(-1).reshape(
+            actions.shape[:-1])
 
 
-def save(model: AVNav, path, meta: dict, half: bool = False) -> None:
-    """Write a checkpoint atomically; ``half`` stores the weights as float16 (half the size, for shipping; they load
-    back as float32)."""
+def write_checkpoint(model: nn.Module, arch: str, path, meta: dict, half: bool = False,
+                     train_state: dict | None = None) -> None:
+    """Write ``model`` (with a dataclass ``cfg``) atomically; ``half`` stores the weights as float16 (half the size,
+    for shipping; they load back as float32); ``train_state`` (optimizer, random states, counters) is what
+    ``--resume`` goes on from."""
     from sonicverse_core.storage import atomic_write
 
     state = {k: v.half() if half and v.is_floating_point() else v for k, v in model.state_dict().items()}
+    ck = {"arch": arch, "config": asdict(model.cfg), "state": state, "meta": meta}
+    if train_state is not None:
+        ck["train_state"] = train_state
     with atomic_write(path) as f:
-        torch.save({"arch": "av-nav", "config": asdict(model.cfg), "state": state, "meta": meta}, f)
+        torch.save(ck, f)
 
 
-def load(path) -> tuple[AVNav, dict]:
+def read_checkpoint(path, arch: str, build, what: str) -> tuple[nn.Module, dict]:
+    """(model in eval mode, meta) from a file :func:`write_checkpoint` wrote for ``arch``; ``build(config dict)``
+    makes the empty model. A missing, damaged or foreign file is a ConfigError naming ``what`` it should be."""
     from pathlib import Path
 
     from sonicverse_core.errors import ConfigError
 
     p = Path(path)
     if not p.is_file():
-        raise ConfigError(f"checkpoint not found: {p}")
+        raise ConfigError(f"{what} not found: {p}")
     try:
         ck = torch.load(p, map_location="cpu", weights_only=False)
-        cfg = AVNavConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in ck["config"].items()})
-        model = AVNav(cfg)
+        if ck.get("arch") != arch:
+            raise ValueError(f"arch {ck.get('arch')!r}")
+        model = build({k: _tuples(v) for k, v in ck["config"].items()})
         model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ck["state"].items()})
     except Exception as exc:  # a damaged or foreign file: one clear line
-        raise ConfigError(f"{p} is not a Sonicverse AV-Nav checkpoint ({type(exc).__name__}: {exc})") from None
+        raise ConfigError(f"{p} is not a Sonicverse {what} ({type(exc).__name__}: {exc})") from None
     model.eval()
     return model, ck.get("meta", {})
+
+
+def save(model: AVNav, path, meta: dict, half: bool = False, train_state: dict | None = None) -> None:
+    """An AV-Nav checkpoint (:func:`write_checkpoint`)."""
+    write_checkpoint(model, "av-nav", path, meta, half, train_state)
+
+
+def load_train_state(path) -> dict:
+    """The training state saved beside a checkpoint's weights (``{}`` when it has none)."""
+    return torch.load(path, map_location="cpu", weights_only=False).get("train_state", {})
+
+
+def _tuples(v):
+    return tuple(_tuples(x) for x in v) if isinstance(v, (list, tuple)) else v
+
+
+def load(path) -> tuple[AVNav, dict]:
+    return read_checkpoint(path, "av-nav", lambda c: AVNav(AVNavConfig(**c)), "AV-Nav checkpoint")

@@ -166,10 +166,12 @@ class MapAgent(Agent):
         self.k = min(2, len(self.path) - 1)
 
 
-class GanAgent(MapAgent):
-    """Binaural localisation + depth occupancy map + planner; uses observations only (audio, depth, pose)."""
+class GanItdAgent(MapAgent):
+    """Hand-made binaural localisation (interaural delays voted over spins in place, bearings triangulated) + depth
+    occupancy map + planner; uses observations only (audio, depth, pose). Kept for comparison as ``gan-itd``: the
+    ``gan`` baseline (:class:`GanAgent`) localises with a learned model, as Gan et al. do."""
 
-    name = "gan"
+    name = "gan-itd"
     ITD_MAX = 0.00066  # s: the KEMAR head's largest interaural delay
 
     def reset(self, env, obs, info):
@@ -264,6 +266,120 @@ class GanAgent(MapAgent):
                 self.bearings = self.bearings[-1:]
                 return self._out([0.0, 0.0])
             return self._out([0.0, 0.0], stop=True)
+        while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
+            self.k += 1
+        return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt))
+
+
+class GanAgent(MapAgent):
+    """Gan et al. (2020): a learned sound localiser (:mod:`agents.localizer`) + an occupancy map from depth + a
+    planner; reads observations only (audio, spectrogram, depth, pose, bump).
+
+    It turns once on the spot (hearing the sound from every heading), then drives to its estimate of the sound's
+    position. Each audible step's prediction votes into a grid over the odometry frame (a Gaussian around the
+    predicted point, wider the farther it is, weighted by the prediction's confidence; older votes fade by ``FADE``
+    a step); the estimate is the grid's peak. (Votes from a localiser whose errors were front-back confusions would
+    spread over mirror images that move as the robot turns while the true position stays put. The shipped localiser
+    is at chance on steady sounds in these homes, its model card says why, so here the grid mostly averages noise.)
+    When the sound stops the robot keeps its last estimate. It has arrived within ``STOP_RADIUS`` of the estimate, or
+    within ``NEAR`` of it when it lies in mapped obstacle or the robot has come no nearer to it for ``STUCK`` steps.
+    Arrived, it circles the estimate (hearing it from new places) while the sound plays, and stops (tasks with a stop
+    action) once the sound has stopped or the localiser hears the object within 0.7 ``NEAR``; on AudioGoal (no stop)
+    it circles until the task ends the episode."""
+
+    name = "gan"
+    VOTE_CELL = 0.2  # m
+    FADE = 0.98
+    STOP_RADIUS = 0.5
+    NEAR = 1.0
+    STUCK = 30
+
+    def __init__(self, rng: np.random.Generator | None = None, checkpoint=None):
+        super().__init__(rng)
+        from agents.learned import CHECKPOINTS
+        from agents.localizer import load
+
+        self.localizer, _ = load(checkpoint or CHECKPOINTS / "sound-localizer.pt")
+
+    def reset(self, env, obs, info):
+        super().reset(env, obs, info)
+        self.sr = env.cfg.sample_rate
+        self.occ = np.zeros((self.SIZE, self.SIZE), np.int16)
+        n = int(round(self.SIZE * self.CELL / self.VOTE_CELL))
+        self.votes = np.zeros((n, n))
+        c = (np.arange(n) - n / 2 + 0.5) * self.VOTE_CELL
+        self._vx, self._vy = np.meshgrid(c, c, indexing="ij")
+        self.heard, self.quiet, self.near_now = 0, 0, False
+        self.goal = None
+        self.closest, self.closest_to, self.no_closer = math.inf, np.zeros(2), 0
+        self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+        self.path, self.k, self.since_plan, self.circle = None, 0, 0, 0
+        self._fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
+
+    def _hear(self, obs, p, yaw) -> None:
+        from agents.localizer import audible
+
+        self.votes *= self.FADE
+        self.near_now = False
+        if "spectrogram" not in obs or not audible(obs["audio"]):
+            self.quiet += 1
+            return
+        self.quiet = 0
+        c, s_, l1p = self.localizer.predict(obs["spectrogram"], obs["audio"], self.sr)
+        conf = min(float(math.hypot(c, s_)), 1.0)
+        b = math.radians(yaw) + math.atan2(s_, c)
+        d = float(math.expm1(max(l1p, 0.0)))
+        q = p + d * np.array([math.cos(b), math.sin(b)])
+        sigma = 0.4 + 0.3 * d
+        self.votes += conf ** 2 * np.exp(-((self._vx - q[0]) ** 2 + (self._vy - q[1]) ** 2) / (2 * sigma ** 2))
+        self.heard += 1
+        self.near_now = d < self.NEAR * 0.7 and conf > 0.7
+
+    def _estimate(self):
+        if self.heard == 0:
+            return None
+        i, j = np.unravel_index(int(np.argmax(self.votes)), self.votes.shape)
+        return np.array([self._vx[i, j], self._vy[i, j]])
+
+    def act(self, obs, info):
+        p, yaw = self._pose(obs)
+        if "depth" in obs:
+            map_depth(self.occ, obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height, self.CELL)
+        self._hear(obs, p, yaw)
+        turn = _wheels(0.0, math.radians(self.robot.max_turn_deg), self.robot)
+        if self.spin_left > 0:
+            self.spin_left -= 1
+            return self._out(turn)
+        est = self._estimate()
+        if est is None:  # nothing heard yet: keep turning
+            return self._out(turn)
+        bumped = obs.get("bump") is not None and obs["bump"][0] > 0
+        if self.circle and np.linalg.norm(est - self.circle_at) > self.NEAR:  # the estimate moved: go there
+            self.circle = 0
+        if self.circle == 0 and (self.goal is None or np.linalg.norm(est - self.goal) > 0.4 or bumped
+                                 or self.since_plan >= 10):
+            self.goal = est
+            self._plan_to(p, est)
+            self.since_plan = 0
+        self.since_plan += 1
+        dist = float(np.linalg.norm(est - p))
+        if dist < self.closest - 0.1 or np.linalg.norm(est - self.closest_to) > 0.4:  # nearer, or a new estimate
+            self.closest, self.closest_to, self.no_closer = dist, est, 0
+        else:
+            self.no_closer += 1
+        c = self._cell(est)
+        inside = bool(0 <= c[0] < self.SIZE and 0 <= c[1] < self.SIZE and self.occ[c[0], c[1]] >= 2)
+        stuck = self.no_closer >= self.STUCK
+        if dist < self.STOP_RADIUS or (dist < self.NEAR and (inside or stuck)) or self.circle:
+            if self.stop_dim and (self.quiet >= 5 or self.near_now):
+                return self._out([0.0, 0.0], stop=True)
+            if self.circle == 0:
+                self.circle_at = est
+            if self.circle % 15 == 0 or bumped:  # circle the estimate
+                a = math.radians(45.0 * (self.circle // 15))
+                self.goal = est + 0.7 * np.array([math.cos(a), math.sin(a)])
+                self._plan_to(p, self.goal)
+            self.circle += 1
         while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
             self.k += 1
         return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt))

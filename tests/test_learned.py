@@ -31,6 +31,16 @@ def test_policy_shapes_bounds_and_the_gru_restarting_at_episode_starts():
         assert mean.abs().max() <= 1 and torch.isfinite(value).all()
         fresh, _, _ = m(d[3:, 1:2], s[3:, 1:2], p[3:, 1:2], m.initial_state(1), torch.tensor([[1.0], [0.0], [0.0]]))
     assert torch.allclose(mean[3:, 1:2], fresh, atol=1e-6)  # what came before the start is forgotten
+    # a sequence with no start inside runs the GRU in one call: the same as stepping it
+    st = torch.zeros(6, 3)
+    st[0] = 1
+    with torch.no_grad():
+        whole, _, h_whole = m(d, s, p, m.initial_state(3), st)
+        h, steps = m.initial_state(3), []
+        for t in range(6):
+            o, _, h = m(d[t:t + 1], s[t:t + 1], p[t:t + 1], h, st[t:t + 1])
+            steps.append(o)
+    assert torch.allclose(whole, torch.cat(steps), atol=1e-5) and torch.allclose(h_whole, h, atol=1e-5)
 
 
 def test_behaviour_cloning_fits_the_expert_and_masks_padding():
@@ -123,3 +133,160 @@ def test_the_shipped_checkpoint_loads_and_beats_random():
     learned = run_eval("AudioGoal", "av-nav", 8, split="test", seed=0)
     rnd = run_eval("AudioGoal", "random", 8, split="test", seed=0)
     assert learned["sr"]["mean"] >= 1 / 8 > rnd["sr"]["mean"]
+
+
+def test_the_discrete_head_acts_with_its_primitives_and_the_expert_lies_within_0_13_of_one():
+    from agents.imitation import Expert
+    from agents.models import primitives_for
+    from sonicverse_core.tasks import make_env
+
+    for dim in (2, 3):
+        table = np.array(primitives_for(dim))
+        assert table.shape[1] == dim and np.abs(table).max() <= 1
+        assert len({tuple(r) for r in table}) == len(table)
+    assert sum(r[2] > 0 for r in primitives_for(3)) == 1  # one stop, standing still
+    cfg = AVNavConfig(primitives=primitives_for(2))
+    m = AVNav(cfg).eval()
+    d, s, p = _batch(4, 2, cfg)
+    with torch.no_grad():
+        logits, value, _ = m(d, s, p, m.initial_state(2), torch.ones(4, 2))
+    assert logits.shape == (4, 2, len(cfg.primitives))
+    acts = m.act(logits)
+    assert acts.shape == (4, 2, 2) and all(tuple(a) in set(cfg.primitives) for a in acts.reshape(-1, 2).tolist())
+    assert m.label(torch.tensor([[0.98, 0.51], [0.52, -0.52]])).tolist() == [
+        cfg.primitives.index((1.0, 0.5)), cfg.primitives.index((0.5, -0.5))]
+    # the shortest-path expert's actions (what imitation fits) lie within 0.13 of a primitive (the docstring's claim)
+    env = make_env("AudioGoal", split="train", homes=2, sensors=("pose",))
+    ex, seen = Expert(), []
+    try:
+        for seed in (1, 2, 3):
+            obs, info = env.reset(seed=seed)
+            ex.reset(env, obs, info)
+            done = False
+            while not done:
+                a = ex.label(obs, info)
+                seen.append(a)
+                g = ex.goal()
+                assert abs(g[0] ** 2 + g[1] ** 2 - 1) < 1e-5 and g[2] >= 0
+                obs, _, term, trunc, info = env.step(a)
+                done = term or trunc
+    finally:
+        env.close()
+    A = np.array(seen)
+    dist = np.linalg.norm(A[:, None] - np.array(primitives_for(2))[None], axis=-1).min(1)
+    assert len(A) > 50 and dist.max() <= 0.13
+
+
+def test_cross_entropy_and_the_goal_heads_fit_and_an_audio_only_policy_has_no_depth_encoder():
+    from agents.imitation import bc_loss
+    from agents.models import primitives_for
+
+    cfg = AVNavConfig(primitives=primitives_for(2), aux_goal=True)
+    torch.manual_seed(0)
+    m = AVNav(cfg)
+    g = torch.Generator().manual_seed(1)
+    T, B = 8, 4
+    b = {"d": torch.randint(0, 255, (T, B, 64, 64), generator=g, dtype=torch.uint8),
+         "s": torch.randint(0, 255, (T, B, *cfg.spec_shape), generator=g, dtype=torch.uint8),
+         "p": torch.randn(T, B, 4, generator=g), "a": torch.tensor([0.5, 1.0]).expand(T, B, 2),
+         "g": torch.tensor([0.6, -0.8, 1.5]).expand(T, B, 3), "m": torch.ones(T, B)}
+    opt = torch.optim.Adam(m.parameters(), lr=1e-3)
+    first = None
+    for _ in range(40):
+        loss, parts = bc_loss(m, b, 0.5)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        first = first or parts
+    assert set(parts) == {"policy", "goal", "goal_audio"}
+    assert parts["policy"] < 0.05 * first["policy"] and parts["goal"] < 0.05 * first["goal"]
+    with torch.no_grad():
+        out, _, _ = m(b["d"][..., None].float() / 25.5, b["s"].float() / 12.75, b["p"], m.initial_state(B),
+                      torch.ones(T, B))
+    assert torch.all(m.act(out) == torch.tensor([0.5, 1.0]))
+    audio_only = AVNav(AVNavConfig(depth_hw=(), primitives=primitives_for(2)))
+    assert audio_only.depth is None
+    with torch.no_grad():
+        out, v, _ = audio_only(None, b["s"].float(), b["p"], audio_only.initial_state(B), torch.ones(T, B))
+    assert out.shape == (T, B, len(primitives_for(2))) and torch.isfinite(v).all()
+
+
+def test_training_resumes_where_it_stopped(tmp_path):
+    from sonicverse_core.errors import ConfigError
+
+    cfg = ImitationConfig(frames=120, iterations=2, val_episodes=0, epochs=1, seed=5, rollout_steps=40)
+    train(cfg, tmp_path / "run")
+    with pytest.raises(ConfigError, match="nothing to resume"):
+        train(cfg, tmp_path / "other", resume=True)
+    with pytest.raises(ConfigError, match="raise --iterations"):
+        train(cfg, tmp_path / "run", resume=True)
+    before = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
+    res = train(ImitationConfig(frames=180, iterations=3, val_episodes=0, epochs=1, seed=99), tmp_path / "run",
+                resume=True)
+    rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
+    assert [int(r["iteration"]) for r in rows] == [0, 1, 2] and [r["iteration"] for r in res["log"]] == [0, 1, 2]
+    assert int(rows[2]["frames"]) > int(rows[1]["frames"]) >= 80
+    after = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
+    assert after["meta"]["config"]["seed"] == 5  # the run's own configuration, not the new one's
+    assert after["train_state"]["iteration"] == 2 and before["train_state"]["iteration"] == 1
+    assert not torch.equal(after["state"]["actor.weight"], before["state"]["actor.weight"])
+    assert "train_state" not in torch.load(tmp_path / "run" / "best.pt", weights_only=False)
+
+
+def test_vector_env_workers_share_the_cores(monkeypatch):
+    import os
+
+    from sonicverse_core.tasks import EnvFactory, worker_threads
+
+    cores = len(os.sched_getaffinity(0))
+    assert worker_threads(1) == cores and worker_threads(cores) == 1 and worker_threads(10 * cores) == 1
+    for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS"):
+        monkeypatch.delenv(k, raising=False)
+    env = EnvFactory("AudioGoal", threads=1, homes=1, sensors=("pose",))()
+    env.close()
+    assert os.environ["LP_NUM_THREADS"] == "1" and os.environ["OMP_NUM_THREADS"] == "1"
+
+
+def test_bench_train_reports_rollout_update_and_scaling(cli):
+    from sonicverse_core.tasks import worker_threads
+
+    r = cli("bench", "train", "--steps", "20", "--workers", "2", check_rc=0)
+    b = json.loads(r.stdout)
+    for name in ("audio_depth", "audio_only"):
+        ro = b[name]["rollout"]
+        assert ro["frames_per_s"] > 0 and abs(ro["env_share"] + ro["model_share"] - 1) < 0.01
+        assert b[name]["update"]["frames_per_s"] > 0
+    assert b["audio_only"]["rollout"]["parameters"] < b["audio_depth"]["rollout"]["parameters"]
+    assert b["audio_depth"]["rollout_torch_default_threads"]["frames_per_s"] > 0
+    assert [(v["workers"], v["threads_per_worker"]) for v in b["vector"]] == [(2, worker_threads(2)), (2, "default")]
+
+
+def test_ppo_fine_tunes_a_checkpoint_and_validates(tmp_path):
+    from agents.learned import default_checkpoint
+    from agents.ppo import PPOConfig, train as train_ppo
+
+    init = default_checkpoint("av-nav", "AudioGoal")  # the continuous head: PPO's Gaussian
+    res = train_ppo(PPOConfig(frames=96, envs=2, steps=24, epochs=1, val_episodes=1, val_every=1, init=str(init),
+                              seed=4), tmp_path / "p")
+    rows = list(csv.DictReader(open(tmp_path / "p" / "log.csv")))
+    assert [int(r["update"]) for r in rows] == [0, 1] and int(rows[-1]["frames"]) == 96
+    assert res["processes"] == 1 and res["param_spread"] == 0.0
+    assert all(np.isfinite(float(r[k])) for r in rows for k in ("policy_loss", "value_loss", "entropy"))
+    tuned, meta = load(tmp_path / "p" / "best.pt")
+    start, _ = load(init)
+    assert meta["recipe"] == "ppo" and meta["config"]["init"] == str(init)
+    assert any(not torch.equal(a, b) for a, b in zip(tuned.state_dict().values(), start.state_dict().values()))
+
+
+def test_dd_ppo_runs_two_processes_that_keep_identical_weights(tmp_path, cli):
+    """`sonicverse train --nproc 2` launches torchrun: two gloo processes average their gradients (the weights end
+    identical), and a straggler's rollout may be cut short by the other's finishing (never below a quarter)."""
+    r = cli("train", "--recipe", "ppo", "--head", "discrete", "--frames", "256", "--envs", "1", "--val-episodes", "0",
+            "--nproc", "2", "--preempt", "0.5", "--out", str(tmp_path / "dd"), "--json", check_rc=0)
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    assert res["processes"] == 2 and res["param_spread"] == 0.0
+    steps = [row["rollout_steps"] for row in res["log"]]
+    assert len(steps) >= 2 and all(16 <= s <= 64 for s in steps)
+    assert (tmp_path / "dd" / "model.pt").is_file()
+    bad = cli("train", "--recipe", "dagger", "--nproc", "2", "--out", str(tmp_path / "x"))
+    assert bad.returncode == 2 and "--recipe ppo" in bad.stderr

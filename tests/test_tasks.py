@@ -168,9 +168,9 @@ def test_oracle_proves_the_metrics_and_random_does_not():
     assert r["spl"]["mean"] < o["spl"]["mean"]
 
 
-def test_gan_agent_localises_the_sound():
-    """The binaural cue the gan agent relies on: its ITD estimate puts a source on the correct side."""
-    from agents.scripted import GanAgent
+def test_gan_itd_agent_localises_the_sound():
+    """The binaural cue the gan-itd agent relies on: its ITD estimate puts a source on the correct side."""
+    from agents.scripted import GanItdAgent as GanAgent
 
     env = _make("AudioGoal", sensors=("audio", "depth", "pose", "bump"), reverb=False).unwrapped
     obs, info = env.reset(seed=2)

@@ -36,16 +36,50 @@ def cmd_eval(a) -> int:
 
 
 def cmd_train(a) -> int:
-    from agents.imitation import ImitationConfig, train
+    import os
 
-    cfg = ImitationConfig(task=a.task, frames=a.frames, iterations=a.iterations, size=a.size,
-                          val_episodes=a.val_episodes, seed=a.seed)
+    from sonicverse_core.errors import ConfigError
+
+    if a.recipe != "ppo" and (a.nproc > 1 or a.init):
+        raise ConfigError("--nproc and --init belong to --recipe ppo (DD-PPO fine-tuning)")
+    if a.nproc > 1 and "LOCAL_RANK" not in os.environ:  # launch the processes, as torchrun would
+        import subprocess
+
+        argv = ["--recipe", "ppo", "--agent", a.agent, "--task", a.task, "--frames", str(a.frames), "--envs",
+                str(a.envs), "--size", str(a.size), "--val-episodes", str(a.val_episodes), "--seed", str(a.seed),
+                "--head", a.head, "--out", a.out, "--preempt", str(a.preempt)]
+        argv += (["--init", a.init] if a.init else []) + (["--json"] if a.json else [])
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={a.nproc}",
+               "-m", "agents.train", *argv]
+        return subprocess.run(cmd).returncode
 
     def progress(row):
         if not a.json:
             print(" ".join(f"{k} {v}" for k, v in row.items()), file=sys.stderr)
 
-    res = train(cfg, a.out, progress=progress)
+    if a.agent == "sound-localizer":  # the gan baseline's localiser (supervised, not a policy)
+        from agents.localizer import LocalizerTrainConfig, train as train_localizer
+
+        if a.recipe != "dagger" or a.resume:
+            raise ConfigError("the sound localiser is trained by supervision: no --recipe ppo or --resume")
+        cfg = LocalizerTrainConfig(task=a.task, frames=a.frames, val_frames=max(a.frames // 10, 50),
+                                   epochs=a.epochs or 12, seed=a.seed)
+        res = train_localizer(cfg, a.out, progress=progress)
+    elif a.recipe == "ppo":
+        from agents.ppo import PPOConfig, train as train_ppo
+
+        cfg = PPOConfig(task=a.task, frames=a.frames, envs=a.envs, size=a.size, val_episodes=a.val_episodes,
+                        seed=a.seed, init=a.init, head=a.head, preempt=a.preempt)
+        res = train_ppo(cfg, a.out, progress=progress)
+        if res["rank"] != 0:
+            return 0
+    else:
+        from agents.imitation import ImitationConfig, train
+
+        cfg = ImitationConfig(task=a.task, frames=a.frames, iterations=a.iterations, size=a.size,
+                              val_episodes=a.val_episodes, seed=a.seed, head=a.head, aux_weight=a.aux_weight,
+                              epochs=a.epochs or 4, seq=a.seq)
+        res = train(cfg, a.out, progress=progress, resume=a.resume)
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
 
@@ -54,6 +88,13 @@ def cmd_bench_env(a) -> int:
     from app.bench.env import bench_env
 
     print(json.dumps(bench_env(a.task, a.steps, a.workers, a.size, a.seed)))
+    return 0
+
+
+def cmd_bench_train(a) -> int:
+    from app.bench.train import bench_train
+
+    print(json.dumps(bench_train(a.task, a.steps, tuple(a.workers), a.size, a.seed)))
     return 0
 
 
@@ -239,10 +280,22 @@ def add_task_commands(sub, bench_sub) -> None:
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=cmd_eval)
 
-    t = sub.add_parser("train", help="train a learned agent: imitation of the shortest-path oracle (DAgger)",
-                       description="Behaviour cloning with DAgger on train homes and heard sounds; validation SR/SPL "
-                       "on val homes each iteration; a checkpoint (model.pt) and a CSV log (log.csv) in --out.")
-    t.add_argument("--agent", default="av-nav", choices=("av-nav",), help="the model (default: %(default)s)")
+    t = sub.add_parser("train", help="train a learned agent: imitation of the oracle (DAgger), then PPO",
+                       description="--recipe dagger: behaviour cloning with DAgger on train homes and heard sounds; "
+                       "--recipe ppo: PPO from --init (the imitation's best.pt), on --nproc processes (DD-PPO). "
+                       "Validation SR/SPL on val homes; checkpoints (model.pt, best.pt) and a CSV log (log.csv) in "
+                       "--out.")
+    t.add_argument("--recipe", default="dagger", choices=("dagger", "ppo"), help="stage (default: %(default)s)")
+    t.add_argument("--init", default=None, type=A.in_file(".pt"), help="PPO: the checkpoint to start from")
+    t.add_argument("--envs", type=A.count(1, 64), default=2, help="PPO: environments per process "
+                   "(default: %(default)s)")
+    t.add_argument("--nproc", type=A.count(1, 256), default=1, help="PPO: processes on this machine (DD-PPO, "
+                   "gloo on CPU; default: %(default)s)")
+    t.add_argument("--preempt", type=A.number(0.0, 1.0, lo_open=True), default=0.6,
+                   help="DD-PPO: the share of processes whose finished rollouts stop the stragglers' "
+                   "(default: %(default)s)")
+    t.add_argument("--agent", default="av-nav", choices=("av-nav", "sound-localizer"),
+                   help="the model: the AV-Nav policy, or the gan baseline's sound localiser (default: %(default)s)")
     t.add_argument("--task", default="AudioGoal", choices=("AudioGoal", "SemanticAudioNav"),
                    help="the task (default: %(default)s)")
     t.add_argument("--frames", type=A.count(100, 10**9), default=20_000, help="environment frames (default: %(default)s)")
@@ -250,8 +303,17 @@ def add_task_commands(sub, bench_sub) -> None:
     t.add_argument("--size", type=A.count(40, 256), default=64, help="depth image side (default: %(default)s)")
     t.add_argument("--val-episodes", type=A.count(0, 10_000), default=8,
                    help="validation episodes per iteration (default: %(default)s)")
+    t.add_argument("--head", default="discrete", choices=("discrete", "continuous"),
+                   help="action head: wheel-velocity primitives or a Gaussian mean (default: %(default)s)")
+    t.add_argument("--aux-weight", type=A.number(0.0, 100.0), default=0.5,
+                   help="weight of the goal-prediction loss, 0 for none (default: %(default)s)")
+    t.add_argument("--epochs", type=A.count(1, 1000), default=None, help="passes over the dataset per iteration "
+                   "(default: 4; the sound localiser: 12 in all)")
+    t.add_argument("--seq", type=A.count(2, 10_000), default=48, help="imitation: steps per training sequence "
+                   "(default: %(default)s)")
     t.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
     t.add_argument("--out", default="out/train", type=A.out_dir, help="output folder (default: %(default)s)")
+    t.add_argument("--resume", action="store_true", help="go on from --out's model.pt (to more --iterations)")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.set_defaults(func=cmd_train)
 
@@ -264,6 +326,20 @@ def add_task_commands(sub, bench_sub) -> None:
     b.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")
     b.add_argument("--json", action="store_true", help="(always JSON)")
     b.set_defaults(func=cmd_bench_env)
+
+    bt = bench_sub.add_parser("train", help="learned agents' rollout and update frames/s, and vector-env scaling",
+                              description="Rollout frames/s of the AV-Nav policy in one env (audio + depth, audio "
+                              "only) with the env's and the model's shares, the imitation update's frames/s, and "
+                              "steps/s against the number of subprocess workers.")
+    bt.add_argument("--task", default="AudioGoal", choices=("AudioGoal", "SemanticAudioNav"),
+                    help="task (default: %(default)s)")
+    bt.add_argument("--steps", type=A.count(20, 1_000_000), default=300, help="steps to time (default: %(default)s)")
+    bt.add_argument("--workers", type=A.count(1, 64), nargs="+", default=[1, 2],
+                    help="numbers of vector-env workers to time (default: 1 2)")
+    bt.add_argument("--size", type=A.count(40, 256), default=64, help="depth image side (default: %(default)s)")
+    bt.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")
+    bt.add_argument("--json", action="store_true", help="(always JSON)")
+    bt.set_defaults(func=cmd_bench_train)
 
     bc = bench_sub.add_parser("camera", help="ms per frame of the robot camera's outputs: depth, RGB-D, semantic",
                               description="The robot's camera (depth, RGB-D, the semantic camera's category and "

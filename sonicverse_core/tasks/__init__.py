@@ -39,26 +39,44 @@ def make_env(task: str, **kwargs):
 
 class EnvFactory:
     """A picklable ``() -> env`` for vector-env workers: registers the ids inside the worker, then makes the env
-    (the camera's GL context is created there, on the first reset)."""
+    (the camera's GL context is created there, on the first reset). ``threads``: the worker's software rasteriser
+    (Mesa llvmpipe, ``LP_NUM_THREADS``) and math libraries use that many threads; by default llvmpipe starts one
+    per core in every worker, and N workers on N cores then fight over them."""
 
-    def __init__(self, task: str, **kwargs):
+    def __init__(self, task: str, threads: int | None = None, **kwargs):
         spec = task_spec(task)
         if spec.env_id is None:
             from sonicverse_core.errors import ConfigError
 
             raise ConfigError(f"task '{spec.cli}' has no Gymnasium env")
-        self.task, self.kwargs = spec.name, kwargs
+        self.task, self.threads, self.kwargs = spec.name, threads, kwargs
 
     def __call__(self):
+        import os
+
         import gymnasium as gym
 
+        if self.threads:
+            for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
+                os.environ[k] = str(self.threads)
         register_envs()
         return gym.make(ENV_IDS[self.task], **self.kwargs)
 
 
-def make_vector_env(task: str, num_envs: int, context: str = "forkserver", **kwargs):
-    """``num_envs`` environments in subprocess workers (Gymnasium AsyncVectorEnv, NEXT_STEP autoreset)."""
+def worker_threads(num_envs: int) -> int:
+    """Threads per worker so that ``num_envs`` workers share this machine's cores (at least 1)."""
+    import os
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, cores // max(num_envs, 1))
+
+
+def make_vector_env(task: str, num_envs: int, context: str = "forkserver", threads: int | None = -1, **kwargs):
+    """``num_envs`` environments in subprocess workers (Gymnasium AsyncVectorEnv, NEXT_STEP autoreset).
+    ``threads``: per worker (see :class:`EnvFactory`); -1 (default) shares the cores out (:func:`worker_threads`),
+    None leaves the libraries' defaults."""
     import gymnasium as gym
 
-    return gym.vector.AsyncVectorEnv([EnvFactory(task, **kwargs) for _ in range(num_envs)], context=context,
-                                     autoreset_mode=gym.vector.AutoresetMode.NEXT_STEP)
+    t = worker_threads(num_envs) if threads == -1 else threads
+    return gym.vector.AsyncVectorEnv([EnvFactory(task, threads=t, **kwargs) for _ in range(num_envs)],
+                                     context=context, autoreset_mode=gym.vector.AutoresetMode.NEXT_STEP)

@@ -1,0 +1,288 @@
+"""PPO fine-tuning of a learned policy (the second stage of the recipe, after imitation), on one process or many.
+
+Recurrent PPO (Schulman et al. 2017) with generalised advantage estimation over rollouts of ``steps`` steps in
+``envs`` environments per process; the GRU's state at each rollout's start is kept, and the update replays whole
+rollouts per environment (episode starts inside them reset the state, as in acting). The policy is the AV-Nav model
+(:mod:`agents.models`): a categorical over the discrete head's primitives or a Gaussian around the continuous head's
+mean. It starts from a checkpoint (``init``, normally the imitation's ``best.pt``; its value head is untrained, so
+the first ``critic_warmup`` updates train the value head alone) or from scratch.
+
+**Beyond one process (DD-PPO, Wijmans et al. 2020)**: launched by ``torchrun --nproc_per_node=K -m agents.train``
+(or ``sonicverse train --nproc K``), every process collects its own rollouts and the gradients are averaged with
+``torch.distributed`` (gloo on CPU, NCCL on CUDA) after each backward pass, so the weights stay identical. Stragglers
+are pre-empted as DD-PPO does: once ``preempt`` of the processes have finished their rollouts, the others stop theirs
+early (after at least a quarter of ``steps``), counted through the process group's key-value store.
+
+Why not a library: the recurrent, multi-input policy with episode-start masks, started from imitation weights, and
+DD-PPO's pre-emption fit neither Stable-Baselines3 (no recurrent PPO with dict observations in the core, no
+distributed training) nor torchrl's collectors without wrapping the model in TensorDict modules; this file is the
+whole algorithm.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from agents.imitation import SENSORS, _quantise, evaluate
+from agents.models import DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load, primitives_for, save
+
+
+@dataclass
+class PPOConfig:
+    task: str = "AudioGoal"
+    frames: int = 20_000  # total over all processes
+    envs: int = 2  # per process
+    steps: int = 64  # rollout length per env
+    epochs: int = 2
+    lr: float = 2.5e-5
+    clip: float = 0.2
+    gamma: float = 0.99
+    lam: float = 0.95
+    entropy: float = 0.01
+    value_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    size: int = 64
+    seed: int = 0
+    init: str | None = None  # a checkpoint to start from (the imitation's best.pt)
+    head: str = "discrete"  # from scratch only
+    val_episodes: int = 8
+    val_every: int = 20  # updates
+    critic_warmup: int = 10  # updates that train only the value head (a checkpoint from imitation has none)
+    preempt: float = 0.6  # DD-PPO: the share of processes whose finishing pre-empts the rest
+
+
+class Dist:
+    """The process group (``torchrun`` sets RANK / WORLD_SIZE / MASTER_ADDR), or a group of one."""
+
+    def __init__(self):
+        import os
+
+        self.on = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1
+        if self.on:
+            import torch.distributed as dist
+
+            if not dist.is_initialized():
+                dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+            self.dist = dist
+            self.rank, self.world = dist.get_rank(), dist.get_world_size()
+            self.store = dist.distributed_c10d._get_default_store()
+        else:
+            self.rank, self.world = 0, 1
+
+    def average_grads(self, model) -> None:
+        if not self.on:
+            return
+        grads = [p.grad for p in model.parameters() if p.grad is not None]
+        flat = torch.cat([g.reshape(-1) for g in grads])
+        self.dist.all_reduce(flat)
+        flat /= self.world
+        i = 0
+        for g in grads:
+            g.copy_(flat[i:i + g.numel()].view_as(g))
+            i += g.numel()
+
+    def broadcast(self, model) -> None:
+        if self.on:
+            for t in model.state_dict().values():
+                self.dist.broadcast(t, 0)
+
+    def finished(self, update: int) -> int:
+        """Mark this process's rollout of ``update`` done; the number done so far."""
+        return int(self.store.add(f"done{update}", 1)) if self.on else 1
+
+    def done_count(self, update: int) -> int:
+        return int(self.store.add(f"done{update}", 0)) if self.on else 0
+
+    def sum(self, x: float) -> float:
+        if not self.on:
+            return x
+        t = torch.tensor([x], dtype=torch.float64)
+        self.dist.all_reduce(t)
+        return float(t[0])
+
+    def spread(self, x: float) -> float:
+        """max - min of ``x`` over the processes (0 for one)."""
+        if not self.on:
+            return 0.0
+        hi, lo = torch.tensor([x], dtype=torch.float64), torch.tensor([x], dtype=torch.float64)
+        self.dist.all_reduce(hi, op=self.dist.ReduceOp.MAX)
+        self.dist.all_reduce(lo, op=self.dist.ReduceOp.MIN)
+        return float(hi[0] - lo[0])
+
+    def barrier(self) -> None:
+        if self.on:
+            self.dist.barrier()
+
+    def close(self) -> None:
+        if self.on:
+            self.dist.destroy_process_group()
+
+
+def _dist_of(model: AVNav, out: torch.Tensor):
+    if model.discrete:
+        return torch.distributions.Categorical(logits=out)
+    return torch.distributions.Normal(out, model.log_std.exp())
+
+
+def _inputs(d, s, p):
+    return d[..., None].float() * (DEPTH_MAX / 255), s.float() * (SPEC_MAX / 255), p
+
+
+def train(cfg: PPOConfig, out, progress=None) -> dict:
+    """Run PPO for ``cfg.frames`` frames (all processes together); rank 0 writes ``out/model.pt`` (each
+    validation), ``out/best.pt`` (the best validation SR + SPL) and ``out/log.csv``."""
+    from sonicverse_core.errors import ConfigError
+    from sonicverse_core.tasks import make_env
+
+    dist = Dist()
+    out = Path(out)
+    if dist.rank == 0 and (out / "model.pt").exists():
+        raise ConfigError(f"{out / 'model.pt'} exists: choose another --out")
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng([cfg.seed, dist.rank])
+    envs = [make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size)
+            for _ in range(cfg.envs)]
+    if cfg.init:
+        model, meta = load(cfg.init)
+        size = model.cfg.depth_hw[0]
+        if size != cfg.size:
+            raise ConfigError(f"{cfg.init} was trained on {size} px depth, not --size {cfg.size}")
+    else:
+        adim = envs[0].action_space.shape[0]
+        model = AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=envs[0].observation_space[
+            "spectrogram"].shape, action_dim=adim, primitives=primitives_for(adim) if cfg.head == "discrete" else ()))
+    dist.broadcast(model)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    E, T = cfg.envs, cfg.steps
+    updates = max(1, math.ceil(cfg.frames / (E * T * dist.world)))
+    obs = [e.reset(seed=int(rng.integers(2**31)))[0] for e in envs]
+    h = model.initial_state(E)
+    start = torch.ones(E)
+    log_path = out / "log.csv"
+    if dist.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+    rows, best, frames, t0 = [], None, 0, time.perf_counter()
+    ep_ret, ep_stats = np.zeros(E), []
+    try:
+        for u in range(updates):
+            model.eval()
+            h0 = h.clone()
+            buf = {k: [] for k in ("d", "s", "p", "a", "logp", "v", "r", "start")}
+            t_roll = time.perf_counter()
+            n = 0
+            for t in range(T):
+                q = [_quantise(o) for o in obs]
+                d = torch.from_numpy(np.stack([x[0] for x in q]))[None]
+                s = torch.from_numpy(np.stack([x[1] for x in q]))[None]
+                p = torch.from_numpy(np.stack([x[2] for x in q]))[None]
+                with torch.no_grad(), acting_threads():
+                    o, v, h = model(*_inputs(d, s, p), h, start[None])
+                    pi = _dist_of(model, o[0])
+                    a = pi.sample()
+                    logp = pi.log_prob(a) if model.discrete else pi.log_prob(a).sum(-1)
+                acts = model.table[a] if model.discrete else a.clamp(-1, 1)
+                for k, x in zip(("d", "s", "p", "a", "logp", "v", "start"), (d[0], s[0], p[0], a, logp, v[0], start)):
+                    buf[k].append(x)
+                rew, new_start = np.zeros(E, np.float32), torch.zeros(E)
+                for i, e in enumerate(envs):
+                    obs[i], r, term, trunc, info = e.step(acts[i].numpy().astype(np.float32))
+                    rew[i] = r
+                    ep_ret[i] += r
+                    if term or trunc:
+                        m = info.get("metrics", {})
+                        ep_stats.append((float(m.get("success", 0.0)), float(m.get("spl", 0.0)), ep_ret[i]))
+                        ep_ret[i] = 0.0
+                        obs[i] = e.reset(seed=int(rng.integers(2**31)))[0]
+                        new_start[i] = 1.0
+                buf["r"].append(torch.from_numpy(rew))
+                start = new_start
+                n += E
+                if dist.on and t + 1 >= T // 4 and dist.done_count(u) >= math.ceil(cfg.preempt * dist.world):
+                    break  # DD-PPO: most processes are done, this straggler stops here
+            dist.finished(u)
+            roll_s = time.perf_counter() - t_roll
+            frames += int(dist.sum(n))
+            # bootstrap and advantages
+            q = [_quantise(o) for o in obs]
+            with torch.no_grad():
+                _, v_last, _ = model(*_inputs(torch.from_numpy(np.stack([x[0] for x in q]))[None],
+                                              torch.from_numpy(np.stack([x[1] for x in q]))[None],
+                                              torch.from_numpy(np.stack([x[2] for x in q]))[None]), h, start[None])
+            L = len(buf["r"])
+            B = {k: torch.stack(v) for k, v in buf.items()}  # (L, E, ...)
+            adv = torch.zeros(L, E)
+            last = torch.zeros(E)
+            for t in reversed(range(L)):
+                nxt_v = v_last[0] if t == L - 1 else B["v"][t + 1]
+                nonterm = 1.0 - (start if t == L - 1 else B["start"][t + 1])
+                delta = B["r"][t] + cfg.gamma * nxt_v * nonterm - B["v"][t]
+                last = delta + cfg.gamma * cfg.lam * nonterm * last
+                adv[t] = last
+            ret = adv + B["v"]
+            adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            # update: whole rollouts per env, from the state the rollout started in
+            model.train()
+            stats = []
+            for _ in range(cfg.epochs):
+                o, v, _ = model(*_inputs(B["d"], B["s"], B["p"]), h0, B["start"])
+                pi = _dist_of(model, o)
+                logp = pi.log_prob(B["a"]) if model.discrete else pi.log_prob(B["a"]).sum(-1)
+                ratio = (logp - B["logp"]).exp()
+                pg = -torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv).mean()
+                vl = ((v - ret) ** 2).mean()
+                ent = pi.entropy().mean() if model.discrete else pi.entropy().sum(-1).mean()
+                warm = cfg.init is not None and u < cfg.critic_warmup
+                loss = cfg.value_coef * vl if warm else pg + cfg.value_coef * vl - cfg.entropy * ent
+                opt.zero_grad()
+                loss.backward()
+                dist.average_grads(model)
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+                opt.step()
+                stats.append((float(pg.detach()), float(vl.detach()), float(ent.detach()),
+                              float(((ratio - 1).abs() > cfg.clip).float().mean())))
+            h = h.detach()
+            validate = cfg.val_episodes and ((u + 1) % cfg.val_every == 0 or u == updates - 1)
+            row = None
+            if dist.rank == 0:
+                model.eval()
+                val = evaluate(model, cfg.task, cfg.val_episodes, "val", cfg.size, cfg.seed) if validate else {}
+                recent = ep_stats[-20:]
+                st = np.mean(stats, 0)
+                row = {"update": u, "frames": frames, "processes": dist.world, "rollout_steps": L,
+                       "rollout_fps": round(n / roll_s, 1), "policy_loss": round(st[0], 5),
+                       "value_loss": round(st[1], 5), "entropy": round(st[2], 4), "clipped": round(st[3], 3),
+                       "train_sr": round(float(np.mean([x[0] for x in recent])), 3) if recent else None,
+                       "train_return": round(float(np.mean([x[2] for x in recent])), 3) if recent else None,
+                       "val_sr": val.get("sr"), "val_spl": val.get("spl"),
+                       "param_sum": round(sum(float(p.detach().double().sum()) for p in model.parameters()), 6),
+                       "wall_s": round(time.perf_counter() - t0, 1)}
+                rows.append(row)
+                with open(log_path, "w" if u == 0 else "a", newline="") as f:
+                    w = csv.DictWriter(f, fieldnames=list(row))
+                    if u == 0:
+                        w.writeheader()
+                    w.writerow(row)
+                if validate or u == updates - 1:
+                    meta = {"recipe": "ppo", "config": asdict(cfg), "log": rows, "update": u}
+                    save(model, out / "model.pt", meta)
+                    score = (val.get("sr") or 0.0) + (val.get("spl") or 0.0)
+                    if validate and (best is None or score > best):
+                        best = score
+                        save(model, out / "best.pt", meta)
+                if progress is not None:
+                    progress(row)
+            dist.barrier()
+        # the weights every process ends with: identical when the gradients were averaged
+        spread = dist.spread(sum(float(p.detach().double().sum()) for p in model.parameters()))
+    finally:
+        for e in envs:
+            e.close()
+        dist.close()
+    return {"out": str(out), "checkpoint": str(out / "model.pt"), "best": str(out / "best.pt"), "log": rows,
+            "processes": dist.world, "rank": dist.rank, "param_spread": spread}
