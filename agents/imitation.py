@@ -127,7 +127,8 @@ class Dataset:
 
 def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = None):
     """(action, next hidden state): the mean / most likely action, or with ``rng`` (discrete head) one drawn from
-    the policy's distribution."""
+    the policy's distribution; a stop (tasks that have one) only when it is the most likely action, since a stop drawn
+    by chance would end the episode."""
     d, s, p = _quantise(obs)
     with torch.no_grad(), acting_threads():
         out, _, h = model(torch.from_numpy(d[None, None, ..., None]).float() * (DEPTH_MAX / 255),
@@ -135,6 +136,11 @@ def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = N
                           torch.from_numpy(p[None, None]), h, torch.tensor([[start]]))
     if rng is not None and model.discrete:
         prob = torch.softmax(out[0, 0].double(), -1).numpy()
+        stop = model.table[:, 2] > 0 if model.table.shape[1] == 3 else torch.zeros(len(prob), dtype=torch.bool)
+        stop = stop.numpy()
+        if stop[int(np.argmax(prob))]:  # the stop ends the episode: taken only when it is the most likely action
+            return model.table[int(np.argmax(prob))].numpy(), h
+        prob = np.where(stop, 0.0, prob)
         return model.table[int(rng.choice(len(prob), p=prob / prob.sum()))].numpy(), h
     return model.act(out)[0, 0].numpy(), h
 
@@ -168,7 +174,8 @@ def bc_loss(model, b: dict, aux_weight: float) -> tuple[torch.Tensor, dict]:
 
 
 def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0) -> dict:
-    """SR and SPL of the policy alone (its mean or most likely action) over ``episodes`` of ``split`` homes."""
+    """SR and SPL of the policy alone over ``episodes`` of ``split`` homes, acting as the ``av-nav`` agent does
+    (actions drawn from the discrete head with a Generator seeded per episode; the continuous head's mean)."""
     from sonicverse_core.tasks import make_env
 
     env = make_env(task, split=split, sensors=SENSORS, width=size, height=size)
@@ -177,8 +184,9 @@ def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int =
         for i in range(episodes):
             obs, info = env.reset(seed=int(np.random.SeedSequence([seed, 7, i]).generate_state(1)[0]))
             h, start, done = model.initial_state(1), True, False
+            draw = np.random.default_rng([seed, 8, i])
             while not done:
-                a, h = _policy_step(model, obs, h, start)
+                a, h = _policy_step(model, obs, h, start, draw)
                 start = False
                 obs, _, term, trunc, info = env.step(a.astype(np.float32))
                 done = term or trunc

@@ -5,7 +5,9 @@ Recurrent PPO (Schulman et al. 2017) with generalised advantage estimation over 
 rollouts per environment (episode starts inside them reset the state, as in acting). The policy is the AV-Nav model
 (:mod:`agents.models`): a categorical over the discrete head's primitives or a Gaussian around the continuous head's
 mean. It starts from a checkpoint (``init``, normally the imitation's ``best.pt``; its value head is untrained, so
-the first ``critic_warmup`` updates train the value head alone) or from scratch.
+the first ``critic_warmup`` updates train the value head alone) or from scratch. From a checkpoint the loss adds
+``kl_init`` x KL(the starting policy || the policy) on the rollouts' states: a first run without it (entropy bonus
+0.01) drifted away from the imitation policy and lost all its successes within 56k frames.
 
 **Beyond one process (DD-PPO, Wijmans et al. 2020)**: launched by ``torchrun --nproc_per_node=K -m agents.train``
 (or ``sonicverse train --nproc K``), every process collects its own rollouts and the gradients are averaged with
@@ -44,7 +46,8 @@ class PPOConfig:
     clip: float = 0.2
     gamma: float = 0.99
     lam: float = 0.95
-    entropy: float = 0.01
+    entropy: float = 0.0  # fine-tuning; a policy trained from scratch wants some (0.01)
+    kl_init: float = 0.1  # weight of KL(init policy || policy) on the rollouts (0: none; needs init)
     value_coef: float = 0.5
     max_grad_norm: float = 0.5
     size: int = 64
@@ -158,11 +161,19 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         model = AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=envs[0].observation_space[
             "spectrogram"].shape, action_dim=adim, primitives=primitives_for(adim) if cfg.head == "discrete" else ()))
     dist.broadcast(model)
+    ref = None
+    if cfg.init and cfg.kl_init > 0:  # the starting policy, frozen
+        import copy
+
+        ref = copy.deepcopy(model).eval()
+        for q_ in ref.parameters():
+            q_.requires_grad_(False)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     E, T = cfg.envs, cfg.steps
     updates = max(1, math.ceil(cfg.frames / (E * T * dist.world)))
     obs = [e.reset(seed=int(rng.integers(2**31)))[0] for e in envs]
     h = model.initial_state(E)
+    h_ref = model.initial_state(E)
     start = torch.ones(E)
     log_path = out / "log.csv"
     if dist.rank == 0:
@@ -173,7 +184,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         for u in range(updates):
             model.eval()
             h0 = h.clone()
-            buf = {k: [] for k in ("d", "s", "p", "a", "logp", "v", "r", "start")}
+            buf = {k: [] for k in ("d", "s", "p", "a", "logp", "v", "r", "start", "ref")}
             t_roll = time.perf_counter()
             n = 0
             for t in range(T):
@@ -183,6 +194,9 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 p = torch.from_numpy(np.stack([x[2] for x in q]))[None]
                 with torch.no_grad(), acting_threads():
                     o, v, h = model(*_inputs(d, s, p), h, start[None])
+                    if ref is not None:
+                        o_ref, _, h_ref = ref(*_inputs(d, s, p), h_ref, start[None])
+                        buf["ref"].append(o_ref[0])
                     pi = _dist_of(model, o[0])
                     a = pi.sample()
                     logp = pi.log_prob(a) if model.discrete else pi.log_prob(a).sum(-1)
@@ -215,7 +229,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                                               torch.from_numpy(np.stack([x[1] for x in q]))[None],
                                               torch.from_numpy(np.stack([x[2] for x in q]))[None]), h, start[None])
             L = len(buf["r"])
-            B = {k: torch.stack(v) for k, v in buf.items()}  # (L, E, ...)
+            B = {k: torch.stack(v) for k, v in buf.items() if v}  # (L, E, ...)
             adv = torch.zeros(L, E)
             last = torch.zeros(E)
             for t in reversed(range(L)):
@@ -239,14 +253,25 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 ent = pi.entropy().mean() if model.discrete else pi.entropy().sum(-1).mean()
                 warm = cfg.init is not None and u < cfg.critic_warmup
                 loss = cfg.value_coef * vl if warm else pg + cfg.value_coef * vl - cfg.entropy * ent
+                kl = torch.zeros(())
+                if ref is not None:
+                    kl = torch.distributions.kl_divergence(_dist_of(ref, B["ref"]), pi)
+                    kl = kl.mean() if model.discrete else kl.sum(-1).mean()
+                    if not warm:
+                        loss = loss + cfg.kl_init * kl
                 opt.zero_grad()
                 loss.backward()
+                if warm:  # the value head alone: the shared encoders and GRU keep the imitation's policy
+                    critic = {id(q_) for q_ in model.critic.parameters()}
+                    for q_ in model.parameters():
+                        if id(q_) not in critic and q_.grad is not None:
+                            q_.grad.zero_()
                 dist.average_grads(model)
                 torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
                 opt.step()
                 stats.append((float(pg.detach()), float(vl.detach()), float(ent.detach()),
-                              float(((ratio - 1).abs() > cfg.clip).float().mean())))
-            h = h.detach()
+                              float(((ratio - 1).abs() > cfg.clip).float().mean()), float(kl.detach())))
+            h, h_ref = h.detach(), h_ref.detach()
             validate = cfg.val_episodes and ((u + 1) % cfg.val_every == 0 or u == updates - 1)
             row = None
             if dist.rank == 0:
@@ -257,6 +282,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 row = {"update": u, "frames": frames, "processes": dist.world, "rollout_steps": L,
                        "rollout_fps": round(n / roll_s, 1), "policy_loss": round(st[0], 5),
                        "value_loss": round(st[1], 5), "entropy": round(st[2], 4), "clipped": round(st[3], 3),
+                       "kl_init": round(st[4], 5),
                        "train_sr": round(float(np.mean([x[0] for x in recent])), 3) if recent else None,
                        "train_return": round(float(np.mean([x[2] for x in recent])), 3) if recent else None,
                        "val_sr": val.get("sr"), "val_spl": val.get("spl"),

@@ -290,3 +290,41 @@ def test_dd_ppo_runs_two_processes_that_keep_identical_weights(tmp_path, cli):
     assert (tmp_path / "dd" / "model.pt").is_file()
     bad = cli("train", "--recipe", "dagger", "--nproc", "2", "--out", str(tmp_path / "x"))
     assert bad.returncode == 2 and "--recipe ppo" in bad.stderr
+
+
+def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
+    from agents.imitation import _policy_step
+    from agents.models import primitives_for
+
+    cfg = AVNavConfig(primitives=primitives_for(3))
+    m = AVNav(cfg).eval()
+    stop = [i for i, a in enumerate(cfg.primitives) if a[2] > 0][0]
+    obs = {"depth": np.full((64, 64, 1), 2.0, np.float32), "spectrogram": np.ones(cfg.spec_shape, np.float32),
+           "pose": np.zeros(4, np.float32)}
+    with torch.no_grad():
+        m.actor.weight.zero_()
+        m.actor.bias.fill_(0.0)
+        m.actor.bias[stop] = 2.0  # stop: the most likely action
+    a, _ = _policy_step(m, obs, m.initial_state(1), True, np.random.default_rng(0))
+    assert a[2] > 0
+    with torch.no_grad():
+        m.actor.bias[stop] = 1.5
+        m.actor.bias[0] = 2.0  # straight ahead most likely; the stop still has about a third of the mass
+    rng = np.random.default_rng(1)
+    drawn = [_policy_step(m, obs, m.initial_state(1), True, rng)[0] for _ in range(200)]
+    assert all(a[2] < 0 for a in drawn) and len({tuple(a) for a in drawn}) > 3  # drawn, never the stop
+
+
+def test_ppo_critic_warmup_leaves_the_policy_as_imitation_left_it(tmp_path):
+    from agents.learned import default_checkpoint
+    from agents.ppo import PPOConfig, train as train_ppo
+
+    init = default_checkpoint("av-nav", "AudioGoal")
+    train_ppo(PPOConfig(frames=64, envs=1, steps=32, epochs=1, val_episodes=0, init=str(init), critic_warmup=5,
+                        seed=6), tmp_path / "w")
+    tuned, meta = load(tmp_path / "w" / "model.pt")
+    start, _ = load(init)
+    a, b = tuned.state_dict(), start.state_dict()
+    assert not torch.equal(a["critic.weight"], b["critic.weight"])
+    assert all(torch.equal(a[k], b[k]) for k in a if not k.startswith("critic."))
+    assert all(r["kl_init"] == 0.0 for r in meta["log"])

@@ -47,7 +47,7 @@ def cmd_train(a) -> int:
 
         argv = ["--recipe", "ppo", "--agent", a.agent, "--task", a.task, "--frames", str(a.frames), "--envs",
                 str(a.envs), "--size", str(a.size), "--val-episodes", str(a.val_episodes), "--seed", str(a.seed),
-                "--head", a.head, "--out", a.out, "--preempt", str(a.preempt)]
+                "--head", a.head, "--out", a.out, "--preempt", str(a.preempt), "--kl-init", str(a.kl_init)]
         argv += (["--init", a.init] if a.init else []) + (["--json"] if a.json else [])
         cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={a.nproc}",
                "-m", "agents.train", *argv]
@@ -69,7 +69,7 @@ def cmd_train(a) -> int:
         from agents.ppo import PPOConfig, train as train_ppo
 
         cfg = PPOConfig(task=a.task, frames=a.frames, envs=a.envs, size=a.size, val_episodes=a.val_episodes,
-                        seed=a.seed, init=a.init, head=a.head, preempt=a.preempt)
+                        seed=a.seed, init=a.init, head=a.head, preempt=a.preempt, kl_init=a.kl_init)
         res = train_ppo(cfg, a.out, progress=progress)
         if res["rank"] != 0:
             return 0
@@ -294,6 +294,8 @@ def add_task_commands(sub, bench_sub) -> None:
     t.add_argument("--preempt", type=A.number(0.0, 1.0, lo_open=True), default=0.6,
                    help="DD-PPO: the share of processes whose finished rollouts stop the stragglers' "
                    "(default: %(default)s)")
+    t.add_argument("--kl-init", type=A.number(0.0, 100.0), default=0.1,
+                   help="PPO: weight of the KL divergence from the --init policy (default: %(default)s)")
     t.add_argument("--agent", default="av-nav", choices=("av-nav", "sound-localizer"),
                    help="the model: the AV-Nav policy, or the gan baseline's sound localiser (default: %(default)s)")
     t.add_argument("--task", default="AudioGoal", choices=("AudioGoal", "SemanticAudioNav"),
