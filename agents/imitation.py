@@ -85,9 +85,37 @@ class Expert:
 
 
 def _quantise(obs) -> tuple:
-    d = np.clip(np.round(obs["depth"][..., 0] / DEPTH_MAX * 255), 0, 255).astype(np.uint8)
+    """(depth uint8 or None without a depth sensor, spectrogram uint8, pose float32) of an observation (or of a
+    vector env's stacked observations): how the datasets store them."""
+    d = (np.clip(np.round(obs["depth"][..., 0] / DEPTH_MAX * 255), 0, 255).astype(np.uint8) if "depth" in obs
+         else None)
     s = np.clip(np.round(obs["spectrogram"] / SPEC_MAX * 255), 0, 255).astype(np.uint8)
     return d, s, obs["pose"].astype(np.float32)
+
+
+def _stack(observations) -> tuple:
+    """The quantised observations of several envs as tensors (1, B, ...) (depth None without a depth sensor)."""
+    q = [_quantise(o) for o in observations]
+
+    def t(i):
+        return None if q[0][i] is None else torch.from_numpy(np.stack([x[i] for x in q]))[None]
+
+    return t(0), t(1), t(2)
+
+
+def _inputs(d, s, p) -> tuple:
+    """The model's inputs from quantised tensors (``d`` may be None)."""
+    return (d[..., None].float() * (DEPTH_MAX / 255) if d is not None else None, s.float() * (SPEC_MAX / 255),
+            p.float())
+
+
+def append_row(path, row: dict, first: bool) -> None:
+    """A line of a training log (CSV); ``first`` starts the file with a header."""
+    with open(path, "w" if first else "a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(row))
+        if first:
+            w.writeheader()
+        w.writerow(row)
 
 
 class Dataset:
@@ -129,15 +157,11 @@ def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = N
     """(action, next hidden state): the mean / most likely action, or with ``rng`` (discrete head) one drawn from
     the policy's distribution; a stop (tasks that have one) only when it is the most likely action, since a stop drawn
     by chance would end the episode."""
-    d, s, p = _quantise(obs)
     with torch.no_grad(), acting_threads():
-        out, _, h = model(torch.from_numpy(d[None, None, ..., None]).float() * (DEPTH_MAX / 255),
-                          torch.from_numpy(s[None, None]).float() * (SPEC_MAX / 255),
-                          torch.from_numpy(p[None, None]), h, torch.tensor([[start]]))
+        out, _, h = model(*_inputs(*_stack([obs])), h, torch.tensor([[start]]))
     if rng is not None and model.discrete:
         prob = torch.softmax(out[0, 0].double(), -1).numpy()
-        stop = model.table[:, 2] > 0 if model.table.shape[1] == 3 else torch.zeros(len(prob), dtype=torch.bool)
-        stop = stop.numpy()
+        stop = model.table[:, 2].numpy() > 0 if model.table.shape[1] == 3 else np.zeros(len(prob), bool)
         if stop[int(np.argmax(prob))]:  # the stop ends the episode: taken only when it is the most likely action
             return model.table[int(np.argmax(prob))].numpy(), h
         prob = np.where(stop, 0.0, prob)
@@ -152,9 +176,7 @@ def bc_loss(model, b: dict, aux_weight: float) -> tuple[torch.Tensor, dict]:
     m = b["m"]
     starts = torch.zeros(m.shape)
     starts[0] = 1.0
-    d = b["d"][..., None].float() * (DEPTH_MAX / 255) if b.get("d") is not None else None
-    y, a_feat, _ = model.features(d, b["s"].float() * (SPEC_MAX / 255), b["p"], model.initial_state(m.shape[1]),
-                                  starts)
+    y, a_feat, _ = model.features(*_inputs(b.get("d"), b["s"], b["p"]), model.initial_state(m.shape[1]), starts)
     out = model.head(y)
     if model.discrete:
         per = torch.nn.functional.cross_entropy(out.reshape(-1, out.shape[-1]), model.label(b["a"]).reshape(-1),
@@ -246,6 +268,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
     expert = Expert()
     per_iter = math.ceil(cfg.frames / cfg.iterations)
     log_path = out / "log.csv"
+    for i, r in enumerate(rows):  # resumed: the log as far as the checkpoint (a kill may have left a later line)
+        append_row(log_path, r, first=i == 0)
     t0 = time.perf_counter() - (rows[-1]["wall_s"] if rows else 0.0)
     try:
         for it in range(start_it, cfg.iterations):
@@ -296,12 +320,7 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                    "fit_s": round(fit_s, 2), "val_sr": val.get("sr"), "val_spl": val.get("spl"),
                    "wall_s": round(time.perf_counter() - t0, 1)}
             rows.append(row)
-            new = not log_path.exists() or it == 0
-            with open(log_path, "w" if it == 0 else "a", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=list(row))
-                if new:
-                    w.writeheader()
-                w.writerow(row)
+            append_row(log_path, row, first=it == 0)
             meta = {"recipe": "dagger", "config": asdict(cfg), "log": rows, "iteration": it}
             score = (val.get("sr") or 0.0) + (val.get("spl") or 0.0)
             if best is None or score > best:  # the best on validation homes (what is shipped)

@@ -18,7 +18,6 @@ val homes: the median bearing error and the distance error.
 """
 from __future__ import annotations
 
-import csv
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -106,7 +105,7 @@ def collect(task: str, split: str, frames: int, rng: np.random.Generator, turn_p
     second fills with audio heard there), then records ``RECORD`` frames, standing or turning on the spot (share
     ``turn_prob``: the agent hears while it turns). Driven by the oracle alone, the sound would nearly always be
     ahead, and a model learns to answer "ahead"."""
-    from agents.imitation import Expert
+    from agents.imitation import Expert, _quantise
     from sonicverse_core.tasks import make_env
 
     WAIT, RECORD, DRIVE = 10, 6, 12
@@ -130,8 +129,7 @@ def collect(task: str, split: str, frames: int, rng: np.random.Generator, turn_p
                     turn[:2] = (-0.5, 0.5) if rng.random() < 0.5 else (0.5, -0.5)
                 for k in range(WAIT + RECORD):
                     if k >= WAIT and audible(obs["audio"]):
-                        out["s"].append(np.clip(np.round(obs["spectrogram"] / SPEC_MAX * 255), 0, 255).astype(
-                            np.uint8))
+                        out["s"].append(_quantise(obs)[1])
                         out["c"].append(gcc_input(obs["audio"], sr))
                         out["y"].append(target(env))
                     obs, _, term, trunc, info = env.step(still if k < WAIT else turn)
@@ -182,6 +180,7 @@ def load(path) -> tuple[SoundLocalizer, dict]:
 def train(cfg: LocalizerTrainConfig, out, progress=None) -> dict:
     """Collect, fit (smooth L1 on the three outputs), validate each epoch; writes ``out/localizer.pt`` (the epoch
     with the lowest validation median bearing error) and ``out/log.csv``."""
+    from agents.imitation import append_row
     from sonicverse_core.errors import ConfigError
 
     out = Path(out)
@@ -217,11 +216,7 @@ def train(cfg: LocalizerTrainConfig, out, progress=None) -> dict:
         row = {"epoch": ep, "loss": round(float(np.mean(losses)), 5), **{k: round(v, 3) for k, v in e.items()},
                "wall_s": round(time.perf_counter() - t0, 1)}
         rows.append(row)
-        with open(out / "log.csv", "w" if ep == 0 else "a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(row))
-            if ep == 0:
-                w.writeheader()
-            w.writerow(row)
+        append_row(out / "log.csv", row, first=ep == 0)
         if best is None or e["bearing_median_deg"] < best:
             best = e["bearing_median_deg"]
             save(model, out / "localizer.pt", {"config": asdict(cfg), "log": rows, "collect_s": round(collect_s, 1),

@@ -22,7 +22,6 @@ whole algorithm.
 """
 from __future__ import annotations
 
-import csv
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -31,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agents.imitation import SENSORS, _quantise, evaluate
-from agents.models import DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load, primitives_for, save
+from agents.imitation import SENSORS, _inputs, _stack, append_row, evaluate
+from agents.models import AVNav, AVNavConfig, acting_threads, load, primitives_for, save
 
 
 @dataclass
@@ -133,10 +132,6 @@ def _dist_of(model: AVNav, out: torch.Tensor):
     return torch.distributions.Normal(out, model.log_std.exp())
 
 
-def _inputs(d, s, p):
-    return d[..., None].float() * (DEPTH_MAX / 255), s.float() * (SPEC_MAX / 255), p
-
-
 def train(cfg: PPOConfig, out, progress=None) -> dict:
     """Run PPO for ``cfg.frames`` frames (all processes together); rank 0 writes ``out/model.pt`` (each
     validation), ``out/best.pt`` (the best validation SR + SPL) and ``out/log.csv``."""
@@ -169,6 +164,8 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         for q_ in ref.parameters():
             q_.requires_grad_(False)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    critic_ids = {id(q_) for q_ in model.critic.parameters()}
+    not_critic = [q_ for q_ in model.parameters() if id(q_) not in critic_ids]
     E, T = cfg.envs, cfg.steps
     updates = max(1, math.ceil(cfg.frames / (E * T * dist.world)))
     obs = [e.reset(seed=int(rng.integers(2**31)))[0] for e in envs]
@@ -188,10 +185,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
             t_roll = time.perf_counter()
             n = 0
             for t in range(T):
-                q = [_quantise(o) for o in obs]
-                d = torch.from_numpy(np.stack([x[0] for x in q]))[None]
-                s = torch.from_numpy(np.stack([x[1] for x in q]))[None]
-                p = torch.from_numpy(np.stack([x[2] for x in q]))[None]
+                d, s, p = _stack(obs)
                 with torch.no_grad(), acting_threads():
                     o, v, h = model(*_inputs(d, s, p), h, start[None])
                     if ref is not None:
@@ -223,11 +217,8 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
             roll_s = time.perf_counter() - t_roll
             frames += int(dist.sum(n))
             # bootstrap and advantages
-            q = [_quantise(o) for o in obs]
             with torch.no_grad():
-                _, v_last, _ = model(*_inputs(torch.from_numpy(np.stack([x[0] for x in q]))[None],
-                                              torch.from_numpy(np.stack([x[1] for x in q]))[None],
-                                              torch.from_numpy(np.stack([x[2] for x in q]))[None]), h, start[None])
+                _, v_last, _ = model(*_inputs(*_stack(obs)), h, start[None])
             L = len(buf["r"])
             B = {k: torch.stack(v) for k, v in buf.items() if v}  # (L, E, ...)
             adv = torch.zeros(L, E)
@@ -262,9 +253,8 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 opt.zero_grad()
                 loss.backward()
                 if warm:  # the value head alone: the shared encoders and GRU keep the imitation's policy
-                    critic = {id(q_) for q_ in model.critic.parameters()}
-                    for q_ in model.parameters():
-                        if id(q_) not in critic and q_.grad is not None:
+                    for q_ in not_critic:
+                        if q_.grad is not None:
                             q_.grad.zero_()
                 dist.average_grads(model)
                 torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
@@ -289,11 +279,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                        "param_sum": round(sum(float(p.detach().double().sum()) for p in model.parameters()), 6),
                        "wall_s": round(time.perf_counter() - t0, 1)}
                 rows.append(row)
-                with open(log_path, "w" if u == 0 else "a", newline="") as f:
-                    w = csv.DictWriter(f, fieldnames=list(row))
-                    if u == 0:
-                        w.writeheader()
-                    w.writerow(row)
+                append_row(log_path, row, first=u == 0)
                 if validate or u == updates - 1:
                     meta = {"recipe": "ppo", "config": asdict(cfg), "log": rows, "update": u}
                     save(model, out / "model.pt", meta)

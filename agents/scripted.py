@@ -145,6 +145,15 @@ class MapAgent(Agent):
     CELL = 0.1
     SIZE = 240  # cells: 24 m x 24 m around the start
 
+    def reset(self, env, obs, info):
+        super().reset(env, obs, info)
+        self.occ = np.zeros((self.SIZE, self.SIZE), np.int16)
+        self._fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
+
+    def _map_depth(self, obs, p, yaw):
+        if "depth" in obs:
+            map_depth(self.occ, obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height, self.CELL)
+
     def _pose(self, obs):
         x, y, s, c = (float(v) for v in obs["pose"])
         return np.array([x, y]), math.degrees(math.atan2(s, c))
@@ -177,7 +186,6 @@ class GanItdAgent(MapAgent):
     def reset(self, env, obs, info):
         super().reset(env, obs, info)
         self.sr = env.cfg.sample_rate
-        self.occ = np.zeros((self.SIZE, self.SIZE), np.int16)
         self.bearings: list[tuple[np.ndarray, float, float]] = []  # (position, world bearing rad, weight)
         self.goal = None
         self.votes = np.zeros(72)
@@ -187,7 +195,6 @@ class GanItdAgent(MapAgent):
         self.quiet = 0
         self.path = None
         self.k = 0
-        self._fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
 
     def _listen(self) -> None:
         """Start a full turn in place, voting for the sound's bearing."""
@@ -198,10 +205,6 @@ class GanItdAgent(MapAgent):
     def _itd(self, audio: np.ndarray) -> tuple[float, float]:
         """(interaural delay s, left leads > 0; energy)."""
         return itd_gcc_phat(audio, self.sr, self.ITD_MAX)
-
-    def _map_depth(self, obs, p, yaw):
-        if "depth" in obs:
-            map_depth(self.occ, obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height, self.CELL)
 
     # --- estimation and planning ------------------------------------------------------------------------------
     def _estimate(self):
@@ -304,7 +307,6 @@ class GanAgent(MapAgent):
     def reset(self, env, obs, info):
         super().reset(env, obs, info)
         self.sr = env.cfg.sample_rate
-        self.occ = np.zeros((self.SIZE, self.SIZE), np.int16)
         n = int(round(self.SIZE * self.CELL / self.VOTE_CELL))
         self.votes = np.zeros((n, n))
         c = (np.arange(n) - n / 2 + 0.5) * self.VOTE_CELL
@@ -314,7 +316,6 @@ class GanAgent(MapAgent):
         self.closest, self.closest_to, self.no_closer = math.inf, np.zeros(2), 0
         self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
         self.path, self.k, self.since_plan, self.circle = None, 0, 0, 0
-        self._fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
 
     def _hear(self, obs, p, yaw) -> None:
         from agents.localizer import audible
@@ -343,8 +344,7 @@ class GanAgent(MapAgent):
 
     def act(self, obs, info):
         p, yaw = self._pose(obs)
-        if "depth" in obs:
-            map_depth(self.occ, obs["depth"][..., 0], p, yaw, self._fx, self.robot.camera_height, self.CELL)
+        self._map_depth(obs, p, yaw)
         self._hear(obs, p, yaw)
         turn = _wheels(0.0, math.radians(self.robot.max_turn_deg), self.robot)
         if self.spin_left > 0:

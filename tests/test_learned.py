@@ -220,6 +220,8 @@ def test_training_resumes_where_it_stopped(tmp_path):
         train(cfg, tmp_path / "other", resume=True)
     with pytest.raises(ConfigError, match="raise --iterations"):
         train(cfg, tmp_path / "run", resume=True)
+    with open(tmp_path / "run" / "log.csv", "a") as f:  # a kill between the log's line and the checkpoint
+        f.write("2,999,0.3\n")
     before = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
     res = train(ImitationConfig(frames=180, iterations=3, val_episodes=0, epochs=1, seed=99), tmp_path / "run",
                 resume=True)

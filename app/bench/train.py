@@ -37,21 +37,14 @@ def _model(env, sensors, size: int):
 
 def _tensors(obs, batched: bool):
     """The model's inputs (T = 1, B) from an observation (or a vector env's stacked observations), quantised as the
-    training data is."""
+    training data is (:func:`agents.imitation._quantise`)."""
     import torch
 
-    from agents.models import DEPTH_MAX, SPEC_MAX
+    from agents.imitation import _inputs, _quantise, _stack
 
-    def q(x, top):
-        return torch.from_numpy(np.round(np.clip(x / top, 0, 1) * 255).astype(np.uint8)).float() * (top / 255)
-
-    def lead(x):  # (T = 1, B, ...)
-        return x[None] if batched else x[None, None]
-
-    s = lead(q(obs["spectrogram"], SPEC_MAX))
-    p = lead(torch.from_numpy(obs["pose"].astype(np.float32)))
-    d = lead(q(obs["depth"], DEPTH_MAX)) if "depth" in obs else None
-    return d, s, p
+    if not batched:
+        return _inputs(*_stack([obs]))
+    return _inputs(*(None if x is None else torch.from_numpy(x)[None] for x in _quantise(obs)))
 
 
 def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, threads: int | None = 1) -> dict:
