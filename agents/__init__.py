@@ -5,15 +5,16 @@ class plays each (name, task).
 """
 from __future__ import annotations
 
+_LEARNED = {"av-nav": "agents.learned:AVNavAgent", "av-nav-greedy": "agents.learned:AVNavGreedy",
+            "savi": "agents.learned:SAViAgent", "multitask": "agents.learned:MultitaskAgent"}
 _NAV = {"random": "agents.scripted:RandomAgent", "oracle": "agents.scripted:OracleAgent",
-        "gan": "agents.scripted:GanAgent", "gan-itd": "agents.scripted:GanItdAgent",
-        "av-nav": "agents.learned:AVNavAgent", "av-nav-greedy": "agents.learned:AVNavGreedy"}
+        "gan": "agents.scripted:GanAgent", "gan-itd": "agents.scripted:GanItdAgent", **_LEARNED}
 # agents that load a checkpoint (``checkpoint=``; default agents/checkpoints/ARCH_TASK.pt)
-LEARNED = {"av-nav", "av-nav-greedy"}
+LEARNED = {"av-nav", "av-nav-greedy", "savi", "multitask"}
 IMPLEMENTATIONS = {
     "AudioGoal": _NAV, "AudioPointGoal": _NAV, "SemanticAudioNav": _NAV,
     "SpeakerFollowing": {"random": "agents.scripted:RandomAgent", "oracle": "agents.following:OracleFollower",
-                         "scripted": "agents.following:MapFollower"},
+                         "scripted": "agents.following:MapFollower", **_LEARNED},
     "VoiceRetrieval": {"random": "agents.scripted:RandomAgent", "oracle": "agents.retrieval:OracleRetriever",
                        "scripted": "agents.retrieval:ScriptedRetriever"},
 }

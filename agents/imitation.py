@@ -1,13 +1,14 @@
-"""Imitation of the shortest-path oracle with DAgger (Ross et al. 2011), the first stage of the learned agents'
+"""Imitation of the task's oracle with DAgger (Ross et al. 2011), the first stage of the learned agents'
 recipe (behaviour cloning then PPO, as PIRLNav and SPOC do): far fewer frames than PPO from scratch.
 
 Each iteration drives ``frames`` steps in train homes with a mix of the expert and the policy (the expert acts with
 probability ``beta``, which decays to ``beta_min``; collection episodes end after ``rollout_steps``), labels every
-visited state with the expert's action (the oracle replans whenever the robot strays from its path), adds them to a
+visited state with the expert's action (the navigation oracle replans whenever the robot strays from its path; on
+speaker following the expert is the oracle follower, :class:`FollowExpert`), adds them to a
 bounded dataset of episode sequences, and fits the policy to the labels (cross-entropy over the discrete head's
 primitives, or mean squared error of the continuous head's mean; truncated back-propagation through time over ``seq``
-steps), with the auxiliary goal-prediction loss (``aux_weight``) on where the goal is from the robot. Then it scores
-SR / SPL on validation homes with the policy alone and saves a checkpoint and a CSV log line. ``resume`` goes on
+steps), with the auxiliary goal-prediction loss (``aux_weight``) on where the goal (the person) is from the robot.
+Then it scores SR / SPL (catch success / time in band on speaker following) on validation homes with the policy alone and saves a checkpoint and a CSV log line. ``resume`` goes on
 from ``out/model.pt`` (weights, optimizer, random states, counters); the dataset is not saved (hundreds of MB)
 and refills from the next rollouts.
 
@@ -24,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load, load_train_state,
-                           primitives_for, save)
+from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load_policy, load_train_state,
+                           primitives_for, save_policy as save)
 
 SENSORS = ("depth", "spectrogram", "pose")
 
@@ -33,6 +34,7 @@ SENSORS = ("depth", "spectrogram", "pose")
 @dataclass
 class ImitationConfig:
     task: str = "AudioGoal"
+    agent: str = "av-nav"  # or "savi", "multitask" (agents/savi.py)
     frames: int = 20_000  # total environment frames
     iterations: int = 10
     size: int = 64  # depth image side
@@ -47,12 +49,25 @@ class ImitationConfig:
     seed: int = 0
     beta0: float = 1.0  # the expert's share in the first iteration, decaying to beta_min by the middle of the run
     beta_min: float = 0.3  # (0 is DAgger's limit; here the learner's own stuck states then swamped the data)
-    rollout_steps: int = 200  # a collection episode ends here (a stuck learner's 500 steps teach little)
+    memory: int = 32  # savi / multitask: steps of scene memory (3.2 s; 64: 5.7 ms a step to act, 32: 3.4)
+    occupancy: int = 32  # multitask: the occupancy map's V x V cells
+    stage1: float = 1 / 3  # savi / multitask: the share of iterations in SAVi's first stage (memory of one step)
+    goal_steps: int = 400  # savi / multitask: batches of the goal predictor's own training per first-stage iteration
+    rollout_steps: int = 0  # a collection episode ends here (a stuck learner's 500 steps teach little); 0: the
+    # task's own (200 on navigation, 600 on speaker following, whose episodes run 20-60 s to the catch at the end)
+
+
+def _relative(pose, xy) -> np.ndarray:
+    """Where ``xy`` is from a robot at ``pose`` (x, y, yaw in degrees): cos and sin of its bearing and log(1 +
+    distance in m): the goal heads' target."""
+    d = np.asarray(xy, float) - pose[:2]
+    b = math.atan2(d[1], d[0]) - math.radians(pose[2])
+    return np.array([math.cos(b), math.sin(b), math.log1p(math.hypot(*d))], np.float32)
 
 
 class Expert:
-    """The oracle's action at whatever state the robot is in: its path is replanned when the robot is more than
-    ``stray`` m from it or bumps."""
+    """The navigation oracle's action at whatever state the robot is in: its path is replanned when the robot is
+    more than ``stray`` m from it or bumps."""
 
     def __init__(self, stray: float = 0.35):
         from agents.scripted import OracleAgent
@@ -63,14 +78,17 @@ class Expert:
     def reset(self, env, obs, info) -> None:
         self.oracle.reset(env, obs, info)
 
+    def category(self) -> int:
+        """The goal's category (its index in the sound bank's categories): the SAVi goal predictor's target."""
+        from assets_manifest.soundbank import CATEGORIES
+
+        return CATEGORIES.index(self.oracle.env.unwrapped.episode.category)
+
     def goal(self) -> np.ndarray:
         """Where the goal (the middle of its terminal positions) is from the robot: cos and sin of its bearing and
         log(1 + distance in m): the auxiliary heads' target."""
         priv = self.oracle.env.privileged()
-        pose = priv["world"].pose
-        d = np.mean(priv["goals"], axis=0) - pose[:2]
-        b = math.atan2(d[1], d[0]) - math.radians(pose[2])
-        return np.array([math.cos(b), math.sin(b), math.log1p(math.hypot(*d))], np.float32)
+        return _relative(priv["world"].pose, np.mean(priv["goals"], axis=0))
 
     def label(self, obs, info) -> np.ndarray:
         o = self.oracle
@@ -82,6 +100,41 @@ class Expert:
             if np.linalg.norm(a + t * (b - a) - p) > self.stray:
                 o._plan()
         return o.act(obs, info)
+
+
+class FollowExpert:
+    """Speaker following's oracle (:class:`agents.following.OracleFollower`: the geodesic path to the person,
+    holding 1.5 m while they walk, stepping out of their way, closing to 0.7 m and stopping at the end); the goal
+    heads learn where the person is."""
+
+    def __init__(self):
+        from agents.following import OracleFollower
+
+        self.oracle = OracleFollower(np.random.default_rng(0))
+
+    def reset(self, env, obs, info) -> None:
+        self.oracle.reset(env, obs, info)
+
+    def category(self) -> int:
+        return 0  # one kind of goal: the person
+
+    def goal(self) -> np.ndarray:
+        priv = self.oracle.env.privileged()
+        return _relative(priv["world"].pose, priv["person"].pos)
+
+    def label(self, obs, info) -> np.ndarray:
+        return self.oracle.act(obs, info)
+
+
+# per task: the expert, the collection episodes' length, the validation scores (summed to pick the best checkpoint)
+EXPERTS = {"SpeakerFollowing": FollowExpert}
+ROLLOUT_STEPS = {"SpeakerFollowing": 600}
+VAL_KEYS = {"SpeakerFollowing": {"sr": "catch_success", "band": "time_in_band"}}
+NAV_VAL = {"sr": "success", "spl": "spl"}
+
+
+def expert_for(task: str):
+    return EXPERTS.get(task, Expert)()
 
 
 def _quantise(obs) -> tuple:
@@ -192,16 +245,68 @@ def bc_loss(model, b: dict, aux_weight: float) -> tuple[torch.Tensor, dict]:
         audio = ((((model.goal_audio(a_feat) - g) ** 2).sum(-1)) * m).sum() / m.sum()
         parts.update(goal=float(goal.detach()), goal_audio=float(audio.detach()))
         loss = loss + aux_weight * (goal + audio)
+    if hasattr(model, "extra_loss"):  # SAVi's category, the multi-task model's occupancy
+        extra, more = model.extra_loss(b, y, a_feat, m)
+        parts.update(more)
+        loss = loss + extra
     return loss, parts
 
 
+def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, batch: int = 64,
+                  lr: float = 1e-3) -> dict:
+    """SAVi's goal predictor trained alone, as SAVi pretrains it: the audio encoder, the category head and the
+    location head on the dataset's audible frames (silent ones say nothing about the goal), ``steps`` batches of
+    ``batch`` frames; the frames of 10% of the episodes are held out. Returns the held-out category accuracy and
+    location error."""
+    from agents.savi import AUDIBLE
+
+    s = np.concatenate([e["s"] for e in data.eps])
+    keep = np.flatnonzero(s.reshape(len(s), -1).mean(1) * (SPEC_MAX / 255) > AUDIBLE)
+    if len(keep) < 20:
+        return {}
+    c = np.concatenate([e["c"] for e in data.eps])[keep] if "c" in data.eps[0] else None
+    g = np.concatenate([e["g"] for e in data.eps])[keep]
+    s = s[keep]
+    ep = np.concatenate([np.full(len(e["a"]), i) for i, e in enumerate(data.eps)])[keep]
+    held = rng.permutation(len(data.eps))[:max(len(data.eps) // 10, 1)]
+    test, train = np.flatnonzero(np.isin(ep, held)), np.flatnonzero(~np.isin(ep, held))
+    if len(test) == 0 or len(train) == 0:
+        test = train = np.arange(len(keep))
+    params = [p for m in (model.goal_net, model.goal_audio, model.category) if m is not None for p in m.parameters()]
+    opt = torch.optim.Adam(params, lr=lr)
+
+    def run(idx):
+        a = model.goal_net((torch.from_numpy(s[idx]).float() / 255).clamp(0, 1))
+        loc = ((model.goal_audio(a) - torch.from_numpy(g[idx])) ** 2).sum(-1).mean()
+        ce = (torch.nn.functional.cross_entropy(model.category(a), torch.from_numpy(c[idx]).long())
+              if c is not None else torch.zeros(()))
+        return a, loc, ce
+
+    model.train()
+    for _ in range(steps):
+        _, loc, ce = run(train[rng.integers(len(train), size=batch)])
+        opt.zero_grad()
+        (loc + ce).backward()
+        opt.step()
+    model.eval()
+    with torch.no_grad():
+        a, loc, _ = run(test)
+        out = {"goal_audio_test": round(float(loc), 4), "audible_frames": int(len(keep))}
+        if c is not None:
+            out["category_acc_test"] = round(float((model.category(a).argmax(1).numpy() == c[test]).mean()), 4)
+    return out
+
+
 def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0) -> dict:
-    """SR and SPL of the policy alone over ``episodes`` of ``split`` homes, acting as the ``av-nav`` agent does
-    (actions drawn from the discrete head with a Generator seeded per episode; the continuous head's mean)."""
+    """The policy alone over ``episodes`` of ``split`` homes, acting as the ``av-nav`` agent does (actions drawn
+    from the discrete head with a Generator seeded per episode; the continuous head's mean): the means of the task's
+    validation scores (``VAL_KEYS``: SR and SPL on navigation; on speaker following ``sr`` is the catch success and
+    ``band`` the time in band)."""
     from sonicverse_core.tasks import make_env
 
+    keys = VAL_KEYS.get(task, NAV_VAL)
     env = make_env(task, split=split, sensors=SENSORS, width=size, height=size)
-    sr, spl = [], []
+    got = {k: [] for k in keys}
     try:
         for i in range(episodes):
             obs, info = env.reset(seed=int(np.random.SeedSequence([seed, 7, i]).generate_state(1)[0]))
@@ -213,11 +318,26 @@ def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int =
                 obs, _, term, trunc, info = env.step(a.astype(np.float32))
                 done = term or trunc
             m = info.get("metrics", {})
-            sr.append(float(m.get("success", 0.0)))
-            spl.append(float(m.get("spl", 0.0)))
+            for k, name in keys.items():
+                got[k].append(float(m.get(name, 0.0)))
     finally:
         env.close()
-    return {"sr": float(np.mean(sr)), "spl": float(np.mean(spl))}
+    return {k: float(np.mean(v)) for k, v in got.items()}
+
+
+def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
+    """The untrained policy ``cfg.agent`` names, for the env's spectrogram shape and action size."""
+    prims = primitives_for(action_dim) if cfg.head == "discrete" else ()
+    if cfg.agent == "av-nav":
+        return AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec_shape, action_dim=action_dim,
+                                 primitives=prims, aux_goal=cfg.aux_weight > 0))
+    from agents.savi import SAVi, SAViConfig
+    from assets_manifest.soundbank import CATEGORIES
+
+    return SAVi(SAViConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec_shape, action_dim=action_dim,
+                           primitives=prims, memory=cfg.memory,
+                           n_categories=0 if cfg.task in EXPERTS else len(CATEGORIES),
+                           occupancy=cfg.occupancy if cfg.agent == "multitask" else 0))
 
 
 def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dict:
@@ -232,13 +352,15 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
         raise ConfigError("--frames and --iterations must be >= 1")
     if cfg.head not in ("discrete", "continuous"):
         raise ConfigError(f"head must be discrete or continuous, got {cfg.head!r}")
+    if cfg.agent not in ("av-nav", "savi", "multitask"):
+        raise ConfigError(f"agent must be av-nav, savi or multitask, got {cfg.agent!r}")
     out = Path(out)
     ck_path = out / "model.pt"
     state, rows, frames, best, start_it = {}, [], 0, None, 0
     if resume:
         if not ck_path.is_file():
             raise ConfigError(f"nothing to resume: {ck_path} does not exist")
-        model, meta = load(ck_path)
+        model, meta = load_policy(ck_path)
         state = load_train_state(ck_path)
         if not state:
             raise ConfigError(f"{ck_path} has no training state to resume from")
@@ -256,16 +378,20 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
     spec = env.observation_space["spectrogram"].shape
     adim = env.action_space.shape[0]
     if not resume:
-        model = AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec, action_dim=adim,
-                                  primitives=primitives_for(adim) if cfg.head == "discrete" else (),
-                                  aux_goal=cfg.aux_weight > 0))
+        model = build_policy(cfg, spec, adim)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     if resume:
         opt.load_state_dict(state["optimizer"])
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
     data = Dataset(cfg.dataset_frames)
-    expert = Expert()
+    expert = expert_for(cfg.task)
+    cap = cfg.rollout_steps or ROLLOUT_STEPS.get(cfg.task, 200)
+    labels_c = getattr(model, "category", None) is not None  # SAVi's category targets
+    occ_v = getattr(model.cfg, "occupancy", 0)  # the multi-task model's occupancy targets
+    if occ_v:
+        from agents.savi import true_occupancy
+    val_keys = VAL_KEYS.get(cfg.task, NAV_VAL)
     per_iter = math.ceil(cfg.frames / cfg.iterations)
     log_path = out / "log.csv"
     for i, r in enumerate(rows):  # resumed: the log as far as the checkpoint (a kill may have left a later line)
@@ -273,6 +399,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
     t0 = time.perf_counter() - (rows[-1]["wall_s"] if rows else 0.0)
     try:
         for it in range(start_it, cfg.iterations):
+            if hasattr(model, "stage"):  # SAVi's two stages
+                model.stage(1 if it < max(1, round(cfg.stage1 * cfg.iterations)) else 2)
             beta = max(cfg.beta_min, cfg.beta0 * (1 - it / max(cfg.iterations / 2, 1)))
             t_roll = time.perf_counter()
             n = 0
@@ -281,6 +409,10 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                 expert.reset(env, obs, info)
                 h, start, done = model.initial_state(1), True, False
                 ep = {"d": [], "s": [], "p": [], "a": [], "g": []}
+                if labels_c:
+                    ep["c"] = []
+                if occ_v:
+                    ep["o"] = []
                 while not done:
                     a_exp = expert.label(obs, info)
                     a_pol, h = _policy_step(model, obs, h, start)
@@ -290,11 +422,15 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                     ep["p"].append(p)
                     ep["a"].append(a_exp.astype(np.float32))
                     ep["g"].append(expert.goal())
+                    if labels_c:
+                        ep["c"].append(np.int64(expert.category()))
+                    if occ_v:
+                        ep["o"].append(true_occupancy(env.unwrapped.privileged()["world"], occ_v))
                     start = False
                     act = a_exp if rng.random() < beta else a_pol
                     obs, _, term, trunc, info = env.step(np.asarray(act, np.float32))
                     n += 1
-                    done = term or trunc or len(ep["a"]) >= cfg.rollout_steps
+                    done = term or trunc or len(ep["a"]) >= cap
                 data.add(ep)
             roll_s = time.perf_counter() - t_roll
             frames += n
@@ -309,6 +445,9 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                     torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
                     opt.step()
                     parts.append(part)
+            pre = {}
+            if getattr(model, "window", None) == 1:  # SAVi's first stage: the goal predictor trained alone too
+                pre = pretrain_goal(model, data, rng, cfg.goal_steps)
             model.eval()
             fit_s = time.perf_counter() - t_fit
             val = evaluate(model, cfg.task, cfg.val_episodes, "val", cfg.size, cfg.seed) if cfg.val_episodes else {}
@@ -316,13 +455,17 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                    "loss": round(float(np.mean([q["policy"] for q in parts])), 5),
                    "goal_loss": round(float(np.mean([q.get("goal", np.nan) for q in parts])), 5),
                    "goal_audio_loss": round(float(np.mean([q.get("goal_audio", np.nan) for q in parts])), 5),
+                   **{f"{k}_loss": round(float(np.mean([q.get(k, np.nan) for q in parts])), 5)
+                      for k in ("category", "occupancy") if k in parts[0]},
+                   **({"category_acc_test": pre.get("category_acc_test"), "goal_audio_test": pre.get("goal_audio_test")}
+                      if hasattr(model, "stage") else {}),
                    "dataset_frames": data.frames, "rollout_fps": round(n / roll_s, 1),
-                   "fit_s": round(fit_s, 2), "val_sr": val.get("sr"), "val_spl": val.get("spl"),
+                   "fit_s": round(fit_s, 2), **{f"val_{k}": val.get(k) for k in val_keys},
                    "wall_s": round(time.perf_counter() - t0, 1)}
             rows.append(row)
             append_row(log_path, row, first=it == 0)
             meta = {"recipe": "dagger", "config": asdict(cfg), "log": rows, "iteration": it}
-            score = (val.get("sr") or 0.0) + (val.get("spl") or 0.0)
+            score = sum(v or 0.0 for v in val.values())
             if best is None or score > best:  # the best on validation homes (what is shipped)
                 best = score
                 save(model, out / "best.pt", meta)

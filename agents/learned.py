@@ -1,4 +1,4 @@
-"""Learned agents as players of the evaluation harness: a checkpoint's policy acting on the sensors it was trained
+"""Learned agents (``av-nav``, ``savi``, ``multitask``) as players of the evaluation harness: a checkpoint's policy acting on the sensors it was trained
 on (the harness builds the env with :meth:`AVNavAgent.env_kwargs`), with its GRU state carried through an episode and
 each action drawn from the policy with the agent's Generator (discrete head; as Habitat's and SoundSpaces'
 evaluations do) or the continuous head's mean. ``av-nav-greedy`` takes the most likely action instead: on the 30
@@ -21,14 +21,14 @@ def default_checkpoint(arch: str, task: str) -> Path:
 
 class AVNavAgent(Agent):
     name = "av-nav"
-
+    arch = "av-nav"  # the checkpoint's architecture
 
     def __init__(self, rng: np.random.Generator | None = None, checkpoint=None, task: str = "AudioGoal"):
         super().__init__(rng)
-        from agents.models import load
+        from agents.models import load_policy
 
-        self.checkpoint = Path(checkpoint) if checkpoint else default_checkpoint("av-nav", task)
-        self.model, self.meta = load(self.checkpoint)
+        self.checkpoint = Path(checkpoint) if checkpoint else default_checkpoint(self.arch, task)
+        self.model, self.meta = load_policy(self.checkpoint, self.arch)
         self.size = self.model.cfg.depth_hw[0]
         self.sample = True  # draw from the policy (discrete head, the Generator); False: the most likely action
 
@@ -48,6 +48,22 @@ class AVNavAgent(Agent):
         a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None)
         self.start = False
         return np.clip(a, -1, 1).astype(np.float32)
+
+
+class SAViAgent(AVNavAgent):
+    """``savi``: SAVi (:mod:`agents.savi`) acting as ``av-nav`` does: its goal descriptor and scene memory are its
+    state through the episode."""
+
+    name = "savi"
+    arch = "savi"
+
+
+class MultitaskAgent(AVNavAgent):
+    """``multitask``: SAVi with occupancy anticipation (the paper's model); it acts on the state feature, the map
+    is its training's auxiliary task."""
+
+    name = "multitask"
+    arch = "multitask"
 
 
 class AVNavGreedy(AVNavAgent):

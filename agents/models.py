@@ -80,7 +80,37 @@ def _cnn(in_ch: int, hw: tuple, out: int, k=(8, 4, 3), s=(4, 2, 1)) -> nn.Sequen
     return nn.Sequential(*layers, nn.Flatten(), nn.Linear(ch * h * w, out), nn.ReLU())
 
 
-class AVNav(nn.Module):
+class ActorCritic(nn.Module):
+    """What every learned policy shares: the action head (continuous or discrete, ``cfg.primitives``), the critic,
+    ``forward`` from the subclass's ``features`` and :meth:`act` / :meth:`label`."""
+
+    def _heads(self, width: int, cfg) -> None:
+        self.discrete = len(cfg.primitives) > 0
+        self.actor = nn.Linear(width, len(cfg.primitives) if self.discrete else cfg.action_dim)
+        self.critic = nn.Linear(width, 1)
+        if self.discrete:
+            self.register_buffer("table", torch.tensor(cfg.primitives, dtype=torch.float32), persistent=False)
+        else:
+            self.log_std = nn.Parameter(torch.full((cfg.action_dim,), -0.5))
+
+    def head(self, y) -> torch.Tensor:
+        return self.actor(y) if self.discrete else torch.tanh(self.actor(y))
+
+    def forward(self, depth, spec, pose, hidden, starts):
+        y, _, hidden = self.features(depth, spec, pose, hidden, starts)
+        return self.head(y), self.critic(y).squeeze(-1), hidden
+
+    def act(self, out: torch.Tensor) -> torch.Tensor:
+        """Wheel velocities (+ stop) from :meth:`forward`'s action output: the mean, or the most likely primitive."""
+        return self.table[out.argmax(-1)] if self.discrete else out
+
+    def label(self, actions: torch.Tensor) -> torch.Tensor:
+        """The discrete head's class for each action: the nearest primitive."""
+        return torch.cdist(actions.reshape(-1, actions.shape[-1]).float(), self.table).argmin(-1).reshape(
+            actions.shape[:-1])
+
+
+class AVNav(ActorCritic):
     """``forward(depth (T, B, H, W, 1), spec (T, B, 2, F, W), pose (T, B, 4), hidden (1, B, H), starts (T, B))`` ->
     (action (T, B, A), value (T, B), hidden): the mean in [-1, 1] (continuous head) or the logits over
     ``cfg.primitives`` (discrete head); :meth:`act` turns either into wheel velocities. ``starts`` marks each
@@ -93,13 +123,7 @@ class AVNav(nn.Module):
         self.depth = _cnn(1, cfg.depth_hw, h) if cfg.depth_hw else None  # () : an audio-only policy
         self.audio = _cnn(cfg.spec_shape[0], cfg.spec_shape[1:], h, k=(5, 3, 3), s=(2, 2, 1))
         self.gru = nn.GRU((2 if cfg.depth_hw else 1) * h + cfg.pose_dim, h)
-        self.discrete = len(cfg.primitives) > 0
-        self.actor = nn.Linear(h, len(cfg.primitives) if self.discrete else cfg.action_dim)
-        self.critic = nn.Linear(h, 1)
-        if self.discrete:
-            self.register_buffer("table", torch.tensor(cfg.primitives, dtype=torch.float32), persistent=False)
-        else:
-            self.log_std = nn.Parameter(torch.full((cfg.action_dim,), -0.5))
+        self._heads(h, cfg)
         if cfg.aux_goal:
             self.goal_head = nn.Linear(h, 3)  # from the GRU's state
             self.goal_audio = nn.Linear(h, 3)  # from the current spectrogram alone
@@ -130,22 +154,6 @@ class AVNav(nn.Module):
             o, hidden = self.gru(x[t:t + 1], hidden)
             outs.append(o)
         return torch.cat(outs, 0), a, hidden
-
-    def head(self, y) -> torch.Tensor:
-        return self.actor(y) if self.discrete else torch.tanh(self.actor(y))
-
-    def forward(self, depth, spec, pose, hidden, starts):
-        y, _, hidden = self.features(depth, spec, pose, hidden, starts)
-        return self.head(y), self.critic(y).squeeze(-1), hidden
-
-    def act(self, out: torch.Tensor) -> torch.Tensor:
-        """Wheel velocities (+ stop) from :meth:`forward`'s action output: the mean, or the most likely primitive."""
-        return self.table[out.argmax(-1)] if self.discrete else out
-
-    def label(self, actions: torch.Tensor) -> torch.Tensor:
-        """The discrete head's class for each action: the nearest primitive."""
-        return torch.cdist(actions.reshape(-1, actions.shape[-1]).float(), self.table).argmin(-1).reshape(
-            actions.shape[:-1])
 
 
 def write_checkpoint(model: nn.Module, arch: str, path, meta: dict, half: bool = False,
@@ -201,3 +209,30 @@ def _tuples(v):
 
 def load(path) -> tuple[AVNav, dict]:
     return read_checkpoint(path, "av-nav", lambda c: AVNav(AVNavConfig(**c)), "AV-Nav checkpoint")
+
+
+POLICIES = ("av-nav", "savi", "multitask")  # the learned policies' architectures (checkpoints' "arch")
+
+
+def load_policy(path, arch: str | None = None):
+    """(model, meta) of any learned policy's checkpoint (``arch``: the one expected, else whichever it holds)."""
+    from sonicverse_core.errors import ConfigError
+
+    if arch is None:
+        try:
+            arch = torch.load(path, map_location="cpu", weights_only=False).get("arch")
+        except Exception:
+            arch = "av-nav"  # read_checkpoint names the problem
+        arch = arch if arch in POLICIES else "av-nav"
+    if arch == "av-nav":
+        return load(path)
+    if arch in ("savi", "multitask"):
+        from agents.savi import load as load_savi
+
+        return load_savi(path, arch)
+    raise ConfigError(f"unknown policy architecture '{arch}'; use one of {', '.join(POLICIES)}")
+
+
+def save_policy(model, path, meta: dict, half: bool = False, train_state: dict | None = None) -> None:
+    """A checkpoint of any learned policy (its ``arch``: ``av-nav`` unless the model says otherwise)."""
+    write_checkpoint(model, getattr(model, "arch", "av-nav"), path, meta, half, train_state)

@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agents.imitation import SENSORS, _inputs, _stack, append_row, evaluate
-from agents.models import AVNav, AVNavConfig, acting_threads, load, primitives_for, save
+from agents.imitation import NAV_VAL, SENSORS, VAL_KEYS, _inputs, _stack, append_row, evaluate
+from agents.models import AVNav, AVNavConfig, acting_threads, load_policy, primitives_for, save_policy as save
 
 
 @dataclass
@@ -147,7 +147,9 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
     envs = [make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size)
             for _ in range(cfg.envs)]
     if cfg.init:
-        model, meta = load(cfg.init)
+        model, meta = load_policy(cfg.init)  # AV-Nav, SAVi or the multi-task model
+        if hasattr(model, "stage"):
+            model.stage(2)  # SAVi's second stage: the full memory, the encoders frozen
         size = model.cfg.depth_hw[0]
         if size != cfg.size:
             raise ConfigError(f"{cfg.init} was trained on {size} px depth, not --size {cfg.size}")
@@ -275,7 +277,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                        "kl_init": round(st[4], 5),
                        "train_sr": round(float(np.mean([x[0] for x in recent])), 3) if recent else None,
                        "train_return": round(float(np.mean([x[2] for x in recent])), 3) if recent else None,
-                       "val_sr": val.get("sr"), "val_spl": val.get("spl"),
+                       **{f"val_{k}": val.get(k) for k in VAL_KEYS.get(cfg.task, NAV_VAL)},
                        "param_sum": round(sum(float(p.detach().double().sum()) for p in model.parameters()), 6),
                        "wall_s": round(time.perf_counter() - t0, 1)}
                 rows.append(row)
@@ -283,7 +285,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 if validate or u == updates - 1:
                     meta = {"recipe": "ppo", "config": asdict(cfg), "log": rows, "update": u}
                     save(model, out / "model.pt", meta)
-                    score = (val.get("sr") or 0.0) + (val.get("spl") or 0.0)
+                    score = sum(v or 0.0 for v in val.values())
                     if validate and (best is None or score > best):
                         best = score
                         save(model, out / "best.pt", meta)

@@ -5,6 +5,8 @@
   GRU), for audio + depth and for audio only (no camera, no depth encoder); torch acts on one thread
   (:func:`agents.models.acting_threads`), and once more on torch's default threads to show what that costs.
 * **Update**: the imitation update (forward over 48-step chunks of 16 sequences, backward, Adam) in frames/s.
+* **Models** (``agents``): the rollout and the update of SAVi and the multi-task model (audio + depth) beside
+  AV-Nav's, so what the scene memory and the occupancy U-Net cost shows against the same env.
 * **Vector**: rollout steps/s in total against the number of subprocess workers (Gymnasium AsyncVectorEnv), with
   the workers' threads shared out over the cores (the default) and with the libraries' own defaults (Mesa's
   llvmpipe starts a rasteriser thread per core in every worker).
@@ -22,17 +24,22 @@ AUDIO_DEPTH = ("depth", "spectrogram", "pose")
 AUDIO_ONLY = ("spectrogram", "pose")
 
 
-def _model(env, sensors, size: int):
+def _model(env, sensors, size: int, agent: str = "av-nav", task: str = "AudioGoal"):
     import torch
 
-    from agents.models import AVNav, AVNavConfig, primitives_for
+    from agents.imitation import ImitationConfig, build_policy
 
     torch.manual_seed(0)
     adim = env.single_action_space.shape[0] if hasattr(env, "single_action_space") else env.action_space.shape[0]
     spec = (env.single_observation_space if hasattr(env, "single_observation_space")
             else env.observation_space)["spectrogram"].shape
-    return AVNav(AVNavConfig(depth_hw=(size, size) if "depth" in sensors else (), spec_shape=spec, action_dim=adim,
-                             primitives=primitives_for(adim), aux_goal=True)).eval()
+    model = build_policy(ImitationConfig(task=task, agent=agent, size=size), spec, adim)
+    if "depth" not in sensors:  # audio only
+        from agents.models import AVNav, AVNavConfig, primitives_for
+
+        model = AVNav(AVNavConfig(depth_hw=(), spec_shape=spec, action_dim=adim, primitives=primitives_for(adim),
+                                  aux_goal=True))
+    return model.eval()
 
 
 def _tensors(obs, batched: bool):
@@ -47,7 +54,8 @@ def _tensors(obs, batched: bool):
     return _inputs(*(None if x is None else torch.from_numpy(x)[None] for x in _quantise(obs)))
 
 
-def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, threads: int | None = 1) -> dict:
+def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, threads: int | None = 1,
+                agent: str = "av-nav") -> dict:
     """``threads``: torch's threads while acting (:func:`agents.models.acting_threads`; None: torch's default)."""
     import contextlib
 
@@ -58,7 +66,7 @@ def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, thr
 
     env = make_env(task, split="train", homes=1, sensors=sensors, width=size, height=size)
     try:
-        model = _model(env, sensors, size)
+        model = _model(env, sensors, size, agent, task)
         obs, _ = env.reset(seed=seed)
         h, start = model.initial_state(1), True
         t_env = t_model = 0.0
@@ -97,7 +105,8 @@ def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, thr
             "parameters": int(sum(p.numel() for p in model.parameters()))}
 
 
-def update(task: str, sensors: tuple, size: int, reps: int = 4, seq: int = 48, batch: int = 16) -> dict:
+def update(task: str, sensors: tuple, size: int, reps: int = 4, seq: int = 48, batch: int = 16,
+           agent: str = "av-nav") -> dict:
     """Frames/s of the imitation update on random data of the training data's shapes and types."""
     import torch
 
@@ -107,7 +116,7 @@ def update(task: str, sensors: tuple, size: int, reps: int = 4, seq: int = 48, b
 
     env = make_env(task, split="train", homes=1, sensors=sensors, width=size, height=size)
     try:
-        model = _model(env, sensors, size).train()
+        model = _model(env, sensors, size, agent, task).train()
         spec = env.observation_space["spectrogram"].shape
         adim = env.action_space.shape[0]
     finally:
@@ -119,6 +128,11 @@ def update(task: str, sensors: tuple, size: int, reps: int = 4, seq: int = 48, b
          "a": table[torch.randint(0, len(table), (seq, batch), generator=g)], "m": torch.ones(seq, batch)}
     b["d"] = (torch.randint(0, 255, (seq, batch, size, size), generator=g, dtype=torch.uint8) if "depth" in sensors
               else None)
+    if getattr(model, "category", None) is not None:  # SAVi's targets
+        b["c"] = torch.randint(0, model.cfg.n_categories, (seq, batch), generator=g)
+    if getattr(model.cfg, "occupancy", 0):
+        V = model.cfg.occupancy
+        b["o"] = torch.randint(0, 2, (seq, batch, V, V), generator=g, dtype=torch.uint8)
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
 
     def step():
@@ -146,7 +160,7 @@ def rollout_vector(task: str, workers: int, steps: int, size: int, seed: int, th
     envs = make_vector_env(task, workers, threads=threads, split="train", homes=1, sensors=AUDIO_DEPTH, width=size,
                            height=size)
     try:
-        model = _model(envs, AUDIO_DEPTH, size)
+        model = _model(envs, AUDIO_DEPTH, size, task=task)
         obs, _ = envs.reset(seed=seed)
         h, starts = model.initial_state(workers), torch.ones(1, workers)
         n = max(steps // workers, 20)
@@ -173,7 +187,8 @@ def rollout_vector(task: str, workers: int, steps: int, size: int, seed: int, th
             "model_share": round(t_model / (t_env + t_model), 3)}
 
 
-def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size: int = 64, seed: int = 0) -> dict:
+def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size: int = 64, seed: int = 0,
+                agents=("av-nav",)) -> dict:
     import os
 
     import torch
@@ -185,6 +200,15 @@ def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size:
     # what acting with torch's default threads costs (its OpenMP workers spin between steps beside the renderer)
     r = rollout_one(task, AUDIO_DEPTH, steps, size, seed, threads=None)
     out["audio_depth"]["rollout_torch_default_threads"] = {k: r[k] for k in ("frames_per_s", "env_ms", "model_ms")}
+    if set(agents) - {"av-nav"}:
+        keys = ("frames_per_s", "model_ms", "env_ms", "ratio_to_env_only", "parameters")
+        models = {}
+        for agent in agents:
+            r = out["audio_depth"]["rollout"] if agent == "av-nav" else rollout_one(task, AUDIO_DEPTH, steps, size,
+                                                                                    seed, agent=agent)
+            u = out["audio_depth"]["update"] if agent == "av-nav" else update(task, AUDIO_DEPTH, size, agent=agent)
+            models[agent] = {"rollout": {k: r[k] for k in keys}, "update_frames_per_s": u["frames_per_s"]}
+        out["models"] = models
     vec = []
     for w in workers:
         for threads in (-1, None):

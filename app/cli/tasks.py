@@ -42,6 +42,8 @@ def cmd_train(a) -> int:
 
     if a.recipe != "ppo" and (a.nproc > 1 or a.init):
         raise ConfigError("--nproc and --init belong to --recipe ppo (DD-PPO fine-tuning)")
+    if a.recipe == "ppo" and a.agent in ("savi", "multitask") and not a.init:
+        raise ConfigError(f"{a.agent} is fine-tuned by PPO from its imitation: give --init best.pt")
     if a.nproc > 1 and "LOCAL_RANK" not in os.environ:  # launch the processes, as torchrun would
         import subprocess
 
@@ -62,6 +64,9 @@ def cmd_train(a) -> int:
 
         if a.recipe != "dagger" or a.resume:
             raise ConfigError("the sound localiser is trained by supervision: no --recipe ppo or --resume")
+        if a.task == "SpeakerFollowing":
+            raise ConfigError("the sound localiser learns sounding objects' places: --task AudioGoal or "
+                              "SemanticAudioNav")
         cfg = LocalizerTrainConfig(task=a.task, frames=a.frames, val_frames=max(a.frames // 10, 50),
                                    epochs=a.epochs or 12, seed=a.seed)
         res = train_localizer(cfg, a.out, progress=progress)
@@ -76,9 +81,9 @@ def cmd_train(a) -> int:
     else:
         from agents.imitation import ImitationConfig, train
 
-        cfg = ImitationConfig(task=a.task, frames=a.frames, iterations=a.iterations, size=a.size,
-                              val_episodes=a.val_episodes, seed=a.seed, head=a.head, aux_weight=a.aux_weight,
-                              epochs=a.epochs or 4, seq=a.seq)
+        cfg = ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
+                              size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
+                              aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq)
         res = train(cfg, a.out, progress=progress, resume=a.resume)
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
@@ -94,7 +99,7 @@ def cmd_bench_env(a) -> int:
 def cmd_bench_train(a) -> int:
     from app.bench.train import bench_train
 
-    print(json.dumps(bench_train(a.task, a.steps, tuple(a.workers), a.size, a.seed)))
+    print(json.dumps(bench_train(a.task, a.steps, tuple(a.workers), a.size, a.seed, tuple(a.agents))))
     return 0
 
 
@@ -166,7 +171,7 @@ def cmd_task_run(a) -> int:
                    "render": not a.no_render, "hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
     res = run_task(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, out=a.out, maps=a.maps,
                    env_kwargs=kw, trials=a.trials, participant=participant, task_kwargs=task_kw,
-                   progress=not a.json)
+                   progress=not a.json, checkpoint=a.checkpoint)
     if a.json:
         print(json.dumps(res))
     else:
@@ -198,6 +203,8 @@ def add_task_commands(sub, bench_sub) -> None:
     tr.add_argument("name", choices=clis, metavar="TASK", help=f"one of {', '.join(clis)}")
     tr.add_argument("--agent", default=None,
                     help="the agent (default: the task's first; see `sonicverse task list`)")
+    tr.add_argument("--checkpoint", default=None, type=A.in_file(".pt"),
+                    help="a learned agent's checkpoint (default: the shipped agents/checkpoints/ARCH_TASK.pt)")
     tr.add_argument("--episodes", type=A.count(1, 100_000), default=10, help="episodes (default: %(default)s)")
     tr.add_argument("--trials", type=A.count(1, 1_000_000), default=None,
                     help="trials per block (orientation training; default: --episodes)")
@@ -283,8 +290,8 @@ def add_task_commands(sub, bench_sub) -> None:
     t = sub.add_parser("train", help="train a learned agent: imitation of the oracle (DAgger), then PPO",
                        description="--recipe dagger: behaviour cloning with DAgger on train homes and heard sounds; "
                        "--recipe ppo: PPO from --init (the imitation's best.pt), on --nproc processes (DD-PPO). "
-                       "Validation SR/SPL on val homes; checkpoints (model.pt, best.pt) and a CSV log (log.csv) in "
-                       "--out.")
+                       "Validation SR/SPL (speaker following: catch success and time in band) on val homes; "
+                       "checkpoints (model.pt, best.pt) and a CSV log (log.csv) in --out.")
     t.add_argument("--recipe", default="dagger", choices=("dagger", "ppo"), help="stage (default: %(default)s)")
     t.add_argument("--init", default=None, type=A.in_file(".pt"), help="PPO: the checkpoint to start from")
     t.add_argument("--envs", type=A.count(1, 64), default=2, help="PPO: environments per process "
@@ -296,9 +303,12 @@ def add_task_commands(sub, bench_sub) -> None:
                    "(default: %(default)s)")
     t.add_argument("--kl-init", type=A.number(0.0, 100.0), default=0.1,
                    help="PPO: weight of the KL divergence from the --init policy (default: %(default)s)")
-    t.add_argument("--agent", default="av-nav", choices=("av-nav", "sound-localizer"),
-                   help="the model: the AV-Nav policy, or the gan baseline's sound localiser (default: %(default)s)")
-    t.add_argument("--task", default="AudioGoal", choices=("AudioGoal", "SemanticAudioNav"),
+    t.add_argument("--agent", default="av-nav", choices=("av-nav", "savi", "multitask", "sound-localizer"),
+                   help="the model: the AV-Nav policy, SAVi, the multi-task model (SAVi + occupancy anticipation), "
+                   "or the gan baseline's sound localiser (default: %(default)s)")
+    t.add_argument("--memory", type=A.count(1, 1000), default=32,
+                   help="savi / multitask: steps of scene memory (default: %(default)s)")
+    t.add_argument("--task", default="AudioGoal", choices=("AudioGoal", "SemanticAudioNav", "SpeakerFollowing"),
                    help="the task (default: %(default)s)")
     t.add_argument("--frames", type=A.count(100, 10**9), default=20_000, help="environment frames (default: %(default)s)")
     t.add_argument("--iterations", type=A.count(1, 100_000), default=10, help="DAgger iterations (default: %(default)s)")
@@ -336,6 +346,8 @@ def add_task_commands(sub, bench_sub) -> None:
     bt.add_argument("--task", default="AudioGoal", choices=("AudioGoal", "SemanticAudioNav"),
                     help="task (default: %(default)s)")
     bt.add_argument("--steps", type=A.count(20, 1_000_000), default=300, help="steps to time (default: %(default)s)")
+    bt.add_argument("--agents", nargs="+", default=["av-nav"], choices=("av-nav", "savi", "multitask"),
+                    help="models whose rollout and update to time beside each other (default: av-nav)")
     bt.add_argument("--workers", type=A.count(1, 64), nargs="+", default=[1, 2],
                     help="numbers of vector-env workers to time (default: 1 2)")
     bt.add_argument("--size", type=A.count(40, 256), default=64, help="depth image side (default: %(default)s)")

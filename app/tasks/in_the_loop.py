@@ -12,7 +12,8 @@ under the OpenVR, desktop and headless backends, with live or offline audio:
 
 The robot's agent is the one ``sonicverse task run`` uses (:func:`agents.make_agent`): every ``STEP`` (0.1 s) of
 frame time it gets the observations the Gymnasium env would give it (binaural audio at the robot's ears, resampled
-to the env's 16 kHz; depth from the robot's camera when views are on; bump; odometry pose) and its action drives
+to the env's 16 kHz, and their spectrogram for agents that learned on it; depth from the robot's camera, at the size
+a learned agent was trained on, when views are on; bump; odometry pose) and its action drives
 the robot's wheels until the next step. What the agent may read besides (``privileged`` for oracles, the
 ``semantic_map``, ``report``) goes through :class:`LoopEnv`, which stands in for the env.
 
@@ -68,12 +69,14 @@ class RobotInTheLoop(FrameTask):
     spec_name = ""
     n_actions = 2
 
-    def __init__(self, agent: str | None = None, seed: int = 0):
+    def __init__(self, agent: str | None = None, seed: int = 0, checkpoint=None):
+        from agents import LEARNED
         from sonicverse_core.tasks.registry import task_spec
 
         self.spec = task_spec(self.spec_name)
         self.agent_name = agent or self.spec.agents[0]
-        if self.agent_name not in self.spec.agents:
+        self.checkpoint = checkpoint  # a learned agent's weights (default: the shipped ones)
+        if self.agent_name not in self.spec.agents and not (self.agent_name in LEARNED and checkpoint is not None):
             raise ConfigError(f"unknown agent '{self.agent_name}' for {self.spec.cli}; use one of "
                               f"{', '.join(self.spec.agents)}")
         self.seed = int(seed)
@@ -95,7 +98,9 @@ class RobotInTheLoop(FrameTask):
         self.setup(session)
         self.start = w.pose.copy()
         self.env = LoopEnv(self, session, self.n_actions)
-        self.agent = make_agent(self.agent_name, np.random.default_rng(self.seed), self.spec.name)
+        self.agent = make_agent(self.agent_name, np.random.default_rng(self.seed), self.spec.name,
+                                checkpoint=self.checkpoint)
+        self._sensors(getattr(self.agent, "env_kwargs", lambda: {})())
         self.wheels = np.zeros(2)
         self.t_next, self.steps, self.collisions, self.path_length = 0.0, 0, 0, 0.0
         self.user = None
@@ -124,6 +129,18 @@ class RobotInTheLoop(FrameTask):
         self.collisions += int(w.bumped)
         self.advance(session, f)
 
+    def _sensors(self, kw: dict) -> None:
+        """What the agent observes (a learned agent's ``env_kwargs``: its sensors and image size): the spectrogram
+        is computed from the robot's ears as the env computes it (a stream over the last ``audio_window`` s)."""
+        from dataclasses import replace
+
+        c = self.env.cfg = replace(self.env.cfg, **{k: kw[k] for k in ("width", "height") if k in kw})
+        self.spec_stream = None
+        if "spectrogram" in kw.get("sensors", ()):
+            from sonicverse_core.sensors.audio import StreamingSpectrogram
+
+            self.spec_stream = StreamingSpectrogram(max(int(round(c.audio_window * ENV_RATE)), 400), c.spec_pool)
+
     def _observe(self, session) -> dict:
         from scipy.signal import resample_poly
 
@@ -145,6 +162,8 @@ class RobotInTheLoop(FrameTask):
                 obs["audio"] = np.clip(y[:, -(n + hold):-hold], -1, 1).astype(np.float32)
         else:
             obs["audio"] = np.zeros((2, int(STEP * ENV_RATE)), np.float32)
+        if self.spec_stream is not None:
+            obs["spectrogram"] = self.spec_stream.push(obs["audio"])
         if session.views is not None:
             c = self.env.cfg
             _, depth = session.views.render_camera(look_matrix(*w.camera), c.width, c.height, c.hfov, depth=True)
@@ -550,8 +569,10 @@ def _pitch(head: np.ndarray) -> float:
 
 
 
-def make_frame_task(task: str, agent: str | None = None, seed: int = 0, trials: int = 10, mode: str = "turn"):
-    """The VR frame task of a registry task (by any of its names) with its agent or participant settings."""
+def make_frame_task(task: str, agent: str | None = None, seed: int = 0, trials: int = 10, mode: str = "turn",
+                    checkpoint=None):
+    """The VR frame task of a registry task (by any of its names) with its agent (and a learned agent's
+    ``checkpoint``) or participant settings."""
     from sonicverse_core.tasks.registry import load, task_spec
 
     spec = task_spec(task)
@@ -560,7 +581,7 @@ def make_frame_task(task: str, agent: str | None = None, seed: int = 0, trials: 
                           f"{', '.join(s.cli for s in _with_frame_task())}")
     cls = load(spec.frame_task)
     if issubclass(cls, RobotInTheLoop):
-        return cls(agent=agent, seed=seed)
+        return cls(agent=agent, seed=seed, checkpoint=checkpoint)
     if agent not in (None, "simulated"):
         raise ConfigError(f"{spec.cli} in VR is done by the user (the headless backend simulates one); "
                           f"--agent takes 'simulated' only")

@@ -37,19 +37,25 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str = "test", seed: int = 0,
              out: str | Path | None = None, maps: str | Path | None = None, env_kwargs: dict | None = None,
              trials: int | None = None, participant: dict | None = None, task_kwargs: dict | None = None,
-             progress: bool = False) -> dict:
+             progress: bool = False, checkpoint=None) -> dict:
+    """``checkpoint``: a learned agent's weights (default: the one shipped for the task)."""
+    from agents import LEARNED
+
     spec = task_spec(task)
     agent = agent or spec.agents[0]
-    if agent not in spec.agents:
-        raise ConfigError(f"unknown agent '{agent}' for {spec.cli}; use one of {', '.join(spec.agents)}")
+    if agent not in spec.agents and ":" not in agent and not (agent in LEARNED and checkpoint is not None):
+        raise ConfigError(f"unknown agent '{agent}' for {spec.cli}; use one of {', '.join(spec.agents)} "
+                          "(or module:callable)")
+    if checkpoint is not None and agent not in LEARNED:
+        raise ConfigError(f"--checkpoint is for learned agents ({', '.join(sorted(LEARNED))}), not '{agent}'")
     if spec.kind == "trials":
         return _run_trials(spec, agent, trials or episodes, seed, out, participant or {}, task_kwargs or {},
                            progress)
-    return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress)
+    return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress, checkpoint)
 
 
 def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: int, out, maps, kw: dict,
-                  progress: bool) -> dict:
+                  progress: bool, checkpoint=None) -> dict:
     from agents import make_agent
     from sonicverse_core.progress import progress as bar
     from sonicverse_core.tasks import make_env
@@ -57,14 +63,16 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
 
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
+    probe = make_agent(agent, np.random.default_rng(seed), spec.name, checkpoint=checkpoint)  # fails early
+    kw = {**kw, **getattr(probe, "env_kwargs", lambda: {})()}  # the sensors a learned agent was trained on
     env = make_env(spec.name, split=split, **kw)
     rows = []
-    csv_path = Path(out) / f"{spec.cli}_{agent}_{split}_s{seed}.csv" if out else None
+    csv_path = Path(out) / f"{spec.cli}_{agent.replace(':', '.')}_{split}_s{seed}.csv" if out else None
     try:
         for i in bar(range(episodes), desc=f"{spec.cli} {agent}", enabled=progress):
             s = episode_seed(seed, i)
             obs, info = env.reset(seed=s)
-            ag = make_agent(agent, np.random.default_rng(s), spec.name)
+            ag = make_agent(agent, np.random.default_rng(s), spec.name, checkpoint=checkpoint)
             ag.reset(env, obs, info)
             robot = [env.home.world.pose[:2].copy()]
             person = [env.task.person.pos.copy()] if hasattr(env.task, "person") else None

@@ -52,7 +52,7 @@ TASKS: dict[str, TaskSpec] = {s.name: s for s in (
              ("oracle", "gan", "gan-itd", "random"), NAV_METRICS, ("sr",), env_id="Sonicverse/SemanticAudioNav-v0",
              summary="the paper's task: RGB-D + audio, the sound stops, stop at the object"),
     TaskSpec("SpeakerFollowing", "speaker-following", "embodied", "sonicverse_core.tasks.following:SpeakerFollowing",
-             ("scripted", "oracle", "random"),
+             ("scripted", "oracle", "random", "av-nav"),
              ("time_in_band", "catch_success", "mean_distance_m", "lost_s", "collisions", "time_s"),
              ("catch_success",), env_id="Sonicverse/SpeakerFollowing-v0", max_steps=1200,
              frame_task="app.tasks.in_the_loop:FollowMe",
