@@ -465,6 +465,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
             rows.append(row)
             append_row(log_path, row, first=it == 0)
             meta = {"recipe": "dagger", "config": asdict(cfg), "log": rows, "iteration": it}
+            if hasattr(model, "window"):  # SAVi: the memory this iteration trained with (1 in the first stage)
+                meta["window"] = model.window
             score = sum(v or 0.0 for v in val.values())
             if best is None or score > best:  # the best on validation homes (what is shipped)
                 best = score

@@ -320,5 +320,8 @@ def save(model: SAVi, path, meta: dict, half: bool = False, train_state: dict | 
 
 
 def load(path, arch: str = "savi") -> tuple[SAVi, dict]:
+    """The model acts with the memory it was trained with (``meta["window"]``: 1 for a first-stage checkpoint)."""
     names = {"savi": "SAVi checkpoint", "multitask": "multi-task checkpoint"}
-    return read_checkpoint(path, arch, lambda c: SAVi(SAViConfig(**c)), names[arch])
+    model, meta = read_checkpoint(path, arch, lambda c: SAVi(SAViConfig(**c)), names[arch])
+    model.window = int(meta.get("window", model.cfg.memory))
+    return model, meta

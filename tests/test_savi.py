@@ -150,6 +150,11 @@ def test_a_short_imitation_run_trains_checkpoints_and_plays(tmp_path, agent):
     model, meta = load_policy(tmp_path / "run" / "model.pt")
     assert isinstance(model, SAVi) and model.arch == agent and meta["config"]["agent"] == agent
     assert (model.occ is not None) == (agent == "multitask")
+    assert model.window == 4 and meta["window"] == 4  # the second stage's memory (iterations 1-2)
+    from agents.models import save_policy
+
+    save_policy(model, tmp_path / "first.pt", {**meta, "window": 1})  # a first-stage checkpoint acts as it trained
+    assert load_policy(tmp_path / "first.pt")[0].window == 1
     out = run_eval("SemanticAudioNav", agent, 1, split="val", checkpoint=str(tmp_path / "run" / "model.pt"),
                    env_kwargs={"max_steps": 30})
     assert out["episodes"] == 1 and out["steps_per_episode"] <= 30
@@ -184,3 +189,17 @@ def test_the_goal_predictor_pretrains_on_audible_frames_and_tells_categories_apa
     m = SAVi(cfg)
     out = pretrain_goal(m, data, np.random.default_rng(1), steps=120, batch=32)
     assert out["audible_frames"] == 30 * 12 and out["category_acc_test"] >= 0.9
+
+
+@pytest.mark.parametrize("agent", ["savi", "multitask"])
+def test_the_shipped_checkpoints_load_and_beat_random(agent):
+    """The shipped SAVi and multi-task AudioGoal policies on the first 6 test episodes of seed 0 (measured: 2 and 3
+    successes; random reaches none of the 30)."""
+    from agents.learned import default_checkpoint
+    from app.tasks.evaluate import run_eval
+
+    model, meta = load_policy(default_checkpoint(agent, "AudioGoal"))
+    assert model.arch == agent and meta["recipe"] == "dagger" and sum(p.numel() for p in model.parameters()) < 6e6
+    learned = run_eval("AudioGoal", agent, 6, split="test", seed=0)
+    rnd = run_eval("AudioGoal", "random", 6, split="test", seed=0)
+    assert learned["sr"]["mean"] >= 1 / 6 > rnd["sr"]["mean"]

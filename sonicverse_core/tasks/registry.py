@@ -42,7 +42,8 @@ def load(ref: str):
 
 TASKS: dict[str, TaskSpec] = {s.name: s for s in (
     TaskSpec("AudioGoal", "audio-goal", "embodied", "sonicverse_core.tasks.nav:AudioGoal",
-             ("oracle", "gan", "gan-itd", "random", "av-nav", "av-nav-greedy"), NAV_METRICS, ("sr",),
+             ("oracle", "gan", "gan-itd", "random", "av-nav", "av-nav-greedy", "savi", "multitask"), NAV_METRICS,
+             ("sr",),
              env_id="Sonicverse/AudioGoal-v0",
              summary="go to the sounding object (depth + binaural audio)"),
     TaskSpec("AudioPointGoal", "audio-point-goal", "embodied", "sonicverse_core.tasks.nav:AudioPointGoal",
