@@ -20,6 +20,23 @@ IMPLEMENTATIONS = {
 }
 
 
+def check_agent(name: str, task: str, checkpoint=None) -> None:
+    """A ConfigError unless ``name`` can play ``task``: one the registry lists for it, a learned one given a
+    ``checkpoint`` (a task it has no shipped one for), or ``module:callable``; ``checkpoint`` only for learned ones."""
+    from sonicverse_core.errors import ConfigError
+    from sonicverse_core.tasks.registry import task_spec
+
+    spec = task_spec(task)
+    if checkpoint is not None and name not in LEARNED:
+        raise ConfigError(f"--checkpoint is for learned agents ({', '.join(sorted(LEARNED))}), not '{name}'")
+    if ":" in name:
+        return
+    listed = name in spec.agents or (name in LEARNED and checkpoint is not None)
+    if not listed or name not in IMPLEMENTATIONS.get(spec.name, {}):
+        raise ConfigError(f"unknown agent '{name}' for {spec.cli}; use one of {', '.join(spec.agents)} "
+                          "(or module:callable)")
+
+
 def make_agent(name: str, rng=None, task: str = "AudioGoal", checkpoint=None):
     """The agent ``name`` for ``task`` (a name, command-line name or id from the registry), or a user's own policy
     given as ``module:callable`` (called with the Generator; it must offer ``reset(env, obs, info)`` and
@@ -34,11 +51,8 @@ def make_agent(name: str, rng=None, task: str = "AudioGoal", checkpoint=None):
             return load(name)(rng)
         except (ImportError, AttributeError, ValueError) as exc:
             raise ConfigError(f"cannot load agent '{name}': {exc}") from None
-    impl = IMPLEMENTATIONS.get(spec.name, {})
-    listed = name in spec.agents or (name in LEARNED and checkpoint is not None)  # a task without a shipped one
-    if not listed or name not in impl:
-        raise ConfigError(f"unknown agent '{name}' for {spec.cli}; use one of {', '.join(spec.agents)} "
-                          "(or module:callable)")
+    check_agent(name, spec.name, checkpoint)
+    impl = IMPLEMENTATIONS[spec.name]
     if name in LEARNED:
         return load(impl[name])(rng, checkpoint=checkpoint, task=spec.name)
     return load(impl[name])(rng)

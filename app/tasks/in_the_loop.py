@@ -70,15 +70,13 @@ class RobotInTheLoop(FrameTask):
     n_actions = 2
 
     def __init__(self, agent: str | None = None, seed: int = 0, checkpoint=None):
-        from agents import LEARNED
+        from agents import check_agent
         from sonicverse_core.tasks.registry import task_spec
 
         self.spec = task_spec(self.spec_name)
         self.agent_name = agent or self.spec.agents[0]
         self.checkpoint = checkpoint  # a learned agent's weights (default: the shipped ones)
-        if self.agent_name not in self.spec.agents and not (self.agent_name in LEARNED and checkpoint is not None):
-            raise ConfigError(f"unknown agent '{self.agent_name}' for {self.spec.cli}; use one of "
-                              f"{', '.join(self.spec.agents)}")
+        check_agent(self.agent_name, self.spec.name, checkpoint)
         self.seed = int(seed)
         self.rng = np.random.default_rng(seed)
         self.done = False

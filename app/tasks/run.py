@@ -39,16 +39,13 @@ def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str
              trials: int | None = None, participant: dict | None = None, task_kwargs: dict | None = None,
              progress: bool = False, checkpoint=None) -> dict:
     """``checkpoint``: a learned agent's weights (default: the one shipped for the task)."""
-    from agents import LEARNED
-
     spec = task_spec(task)
     agent = agent or spec.agents[0]
-    if agent not in spec.agents and ":" not in agent and not (agent in LEARNED and checkpoint is not None):
-        raise ConfigError(f"unknown agent '{agent}' for {spec.cli}; use one of {', '.join(spec.agents)} "
-                          "(or module:callable)")
-    if checkpoint is not None and agent not in LEARNED:
-        raise ConfigError(f"--checkpoint is for learned agents ({', '.join(sorted(LEARNED))}), not '{agent}'")
     if spec.kind == "trials":
+        if agent not in spec.agents:
+            raise ConfigError(f"unknown agent '{agent}' for {spec.cli}; use one of {', '.join(spec.agents)}")
+        if checkpoint is not None:
+            raise ConfigError(f"{spec.cli} has no learned agents: no --checkpoint")
         return _run_trials(spec, agent, trials or episodes, seed, out, participant or {}, task_kwargs or {},
                            progress)
     return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress, checkpoint)
