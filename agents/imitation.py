@@ -254,32 +254,35 @@ def bc_loss(model, b: dict, aux_weight: float) -> tuple[torch.Tensor, dict]:
 
 def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, batch: int = 64,
                   lr: float = 1e-3) -> dict:
-    """SAVi's goal predictor trained alone, as SAVi pretrains it: the audio encoder, the category head and the
+    """SAVi's goal predictor trained alone, as SAVi pretrains it: its spectrogram CNN, the category head and the
     location head on the dataset's audible frames (silent ones say nothing about the goal), ``steps`` batches of
-    ``batch`` frames; the frames of 10% of the episodes are held out. Returns the held-out category accuracy and
-    location error."""
+    ``batch`` frames, gathered from the dataset's episodes (no copy of the dataset); the frames of 10% of the
+    episodes are held out. Returns the held-out category accuracy and location error."""
     from agents.savi import AUDIBLE
 
-    s = np.concatenate([e["s"] for e in data.eps])
-    keep = np.flatnonzero(s.reshape(len(s), -1).mean(1) * (SPEC_MAX / 255) > AUDIBLE)
-    if len(keep) < 20:
+    eps = data.eps
+    loud = [np.flatnonzero(e["s"].reshape(len(e["s"]), -1).mean(1) * (SPEC_MAX / 255) > AUDIBLE) for e in eps]
+    frames = np.array([(i, t) for i, ts in enumerate(loud) for t in ts], np.int64).reshape(-1, 2)  # (episode, step)
+    if len(frames) < 20:
         return {}
-    c = np.concatenate([e["c"] for e in data.eps])[keep] if "c" in data.eps[0] else None
-    g = np.concatenate([e["g"] for e in data.eps])[keep]
-    s = s[keep]
-    ep = np.concatenate([np.full(len(e["a"]), i) for i, e in enumerate(data.eps)])[keep]
-    held = rng.permutation(len(data.eps))[:max(len(data.eps) // 10, 1)]
-    test, train = np.flatnonzero(np.isin(ep, held)), np.flatnonzero(~np.isin(ep, held))
+    labelled = "c" in eps[0]
+    held = rng.permutation(len(eps))[:max(len(eps) // 10, 1)]
+    out_ = np.isin(frames[:, 0], held)
+    test, train = np.flatnonzero(out_), np.flatnonzero(~out_)
     if len(test) == 0 or len(train) == 0:
-        test = train = np.arange(len(keep))
+        test = train = np.arange(len(frames))
+
+    def gather(idx, key):
+        return np.stack([eps[i][key][t] for i, t in frames[idx]])
+
     params = [p for m in (model.goal_net, model.goal_audio, model.category) if m is not None for p in m.parameters()]
     opt = torch.optim.Adam(params, lr=lr)
 
     def run(idx):
-        a = model.goal_net((torch.from_numpy(s[idx]).float() / 255).clamp(0, 1))
-        loc = ((model.goal_audio(a) - torch.from_numpy(g[idx])) ** 2).sum(-1).mean()
-        ce = (torch.nn.functional.cross_entropy(model.category(a), torch.from_numpy(c[idx]).long())
-              if c is not None else torch.zeros(()))
+        a = model.goal_net((torch.from_numpy(gather(idx, "s")).float() / 255).clamp(0, 1))
+        loc = ((model.goal_audio(a) - torch.from_numpy(gather(idx, "g"))) ** 2).sum(-1).mean()
+        ce = (torch.nn.functional.cross_entropy(model.category(a), torch.from_numpy(gather(idx, "c")).long())
+              if labelled else torch.zeros(()))
         return a, loc, ce
 
     model.train()
@@ -291,9 +294,10 @@ def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, ba
     model.eval()
     with torch.no_grad():
         a, loc, _ = run(test)
-        out = {"goal_audio_test": round(float(loc), 4), "audible_frames": int(len(keep))}
-        if c is not None:
-            out["category_acc_test"] = round(float((model.category(a).argmax(1).numpy() == c[test]).mean()), 4)
+        out = {"goal_audio_test": round(float(loc), 4), "audible_frames": int(len(frames))}
+        if labelled:
+            out["category_acc_test"] = round(float((model.category(a).argmax(1).numpy() == gather(test, "c")).mean()),
+                                             4)
     return out
 
 

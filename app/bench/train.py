@@ -33,13 +33,12 @@ def _model(env, sensors, size: int, agent: str = "av-nav", task: str = "AudioGoa
     adim = env.single_action_space.shape[0] if hasattr(env, "single_action_space") else env.action_space.shape[0]
     spec = (env.single_observation_space if hasattr(env, "single_observation_space")
             else env.observation_space)["spectrogram"].shape
-    model = build_policy(ImitationConfig(task=task, agent=agent, size=size), spec, adim)
-    if "depth" not in sensors:  # audio only
+    if "depth" not in sensors:  # audio only (AV-Nav without its depth encoder)
         from agents.models import AVNav, AVNavConfig, primitives_for
 
-        model = AVNav(AVNavConfig(depth_hw=(), spec_shape=spec, action_dim=adim, primitives=primitives_for(adim),
-                                  aux_goal=True))
-    return model.eval()
+        return AVNav(AVNavConfig(depth_hw=(), spec_shape=spec, action_dim=adim, primitives=primitives_for(adim),
+                                 aux_goal=True)).eval()
+    return build_policy(ImitationConfig(task=task, agent=agent, size=size), spec, adim).eval()
 
 
 def _tensors(obs, batched: bool):
