@@ -86,6 +86,31 @@ def test_rt60_within_10_percent_of_eyring(material):
     np.testing.assert_allclose(p.box_hi - p.box_lo, [6, 4, 3], atol=1e-4)
 
 
+def test_the_two_scattering_models_part_as_documented():
+    """probes.py: stochastic scattering (the ISO definition of s) follows Eyring in a room of uniform absorption;
+    vector-based scattering (pyroomacoustics') decays faster there and rings longer under an absorbing ceiling."""
+    from sonicverse_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="scattering"):
+        BakeConfig(scattering="specular")
+    mid = slice(3, 8)  # 250 Hz - 4 kHz
+
+    def rt(spec, model):
+        s = load_scene(spec)
+        return bake_probe(SceneRayCaster(s), [3.3, 2.6, 1.5], BakeConfig(scattering=model)).rt60[mid], s
+
+    uniform = "shoebox:8x6x3?walls=PlasterRough&floor=ParquetOnConcrete&ceiling=PlasterRough"
+    st, s = rt(uniform, "stochastic")
+    vec, _ = rt(uniform, "vector")
+    ey = eyring_rt60((8, 6, 3), s.metadata["surface_materials"])[mid]
+    np.testing.assert_allclose(st, ey, rtol=0.05)
+    assert np.all(vec < 0.95 * ey), (vec, ey)
+    ceiling = "shoebox:12x9x4?walls=BrickBare&floor=LinoleumOnConcrete&ceiling=AcousticCeilingTiles"
+    st, _ = rt(ceiling, "stochastic")
+    vec, _ = rt(ceiling, "vector")
+    assert np.all(vec > 1.15 * st), (vec, st)
+
+
 def test_occlusion_attenuates_high_bands_more():
     s = load_scene("builtin:apartment?seed=3")
     living = next(r for r in s.rooms if r.type == "living room")

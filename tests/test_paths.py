@@ -184,3 +184,13 @@ def test_bench_fidelity_runs_both_simulators_and_the_sealed_rooms_meet_the_mass_
     round_the_corner = next(c for c in d["cases"] if "corner" in c["case"])
     assert round_the_corner["vs_pyroomacoustics"]["G"]["met"]  # was 27 dB low before paths and room-aware sends
     assert d["sealed"]["met"]
+
+
+def test_bench_accuracy_scattering_knob_parts_eyring_and_the_peer():
+    """README: stochastic scattering is the closer to Eyring in a uniform room, vector-based scattering (the peer's
+    own model) the closer to pyroomacoustics under an absorbing ceiling."""
+    from app.bench.accuracy import _scattering
+
+    rows = {r["setting"]: r for r in _scattering(quick=True)["rows"]}
+    assert rows["stochastic"]["error"] < 0.05 < rows["vector"]["error"]
+    assert rows["vector"]["error_vs_pyroomacoustics"] < 0.2 < rows["stochastic"]["error_vs_pyroomacoustics"]

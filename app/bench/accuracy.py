@@ -3,6 +3,9 @@
 Knobs and references:
 * rays per probe, bounces: per-band RT60 of a diffuse shoebox vs Eyring (bands with absorption <= 0.15, where
   Eyring holds), and vs a bake with ``reference_rays`` in the apartment's living room; time per probe.
+* scattering model (stochastic vs vector-based): per-band RT60 (250 Hz-4 kHz) of a uniform plaster shoebox vs
+  Eyring, and the rendered T30 under an absorbing ceiling vs pyroomacoustics (whose tracer scatters by vectors);
+  time per probe.
 * probes per scene: RT60 interpolated at random listener points vs a probe baked at that very point; bake time.
 * HRTF interpolation and filter length: leave-one-out over measured KEMAR directions (interpolate a held-out
   direction from the others, log-spectral distance 200 Hz-16 kHz to the measurement); time per 64 lookups.
@@ -71,6 +74,32 @@ def _rays_and_bounces(reference_rays: int, quick: bool):
              f"apartment's living room, reference {reference_rays} rays; time: one apartment probe",
              "rows": rows},
             {"knob": "max_bounces", "error_metric": "mean |RT60/Eyring - 1| (same shoebox)", "rows": bounce_rows})
+
+
+def _scattering(quick: bool):
+    from app.bench.fidelity import SHOEBOXES, _ours, _pra_polygon, room_parameters
+    from sonicverse_core.acoustics.probes import SCATTERING, BakeConfig, bake_probe, eyring_rt60
+    from sonicverse_core.geometry.raycast import SceneRayCaster
+    from sonicverse_core.scene.spec import load_scene
+
+    mid = slice(3, 8)  # 250 Hz - 4 kHz
+    box = load_scene("shoebox:8x6x3?walls=PlasterRough&floor=ParquetOnConcrete&ceiling=PlasterRough")
+    ey = eyring_rt60((8, 6, 3), box.metadata["surface_materials"])[mid]
+    cbox = SceneRayCaster(box)
+    (L, W, H), walls, floor, ceiling = SHOEBOXES["shoebox large absorbing ceiling"]
+    spec = f"shoebox:{L:g}x{W:g}x{H:g}?walls={walls}&floor={floor}&ceiling={ceiling}"
+    src, lis = (0.3 * L, 0.35 * W, 1.2), (0.7 * L, 0.6 * W, 1.5)
+    peer = np.array(room_parameters(_pra_polygon([(0, 0), (L, 0), (L, W), (0, W)], H, walls, floor, ceiling, src,
+                                                 lis, 5000 if quick else 20_000))["T30"], float)
+    rows = []
+    for model in SCATTERING:
+        p, t = _timed(lambda: bake_probe(cbox, [3.3, 2.6, 1.5], BakeConfig(scattering=model)))
+        ours = np.array(room_parameters(_ours(spec, src, lis, 3.0, model)[0])["T30"], float)
+        rows.append({"setting": model, "error": float(np.mean(np.abs(p.rt60[mid] / ey - 1))),
+                     "error_vs_pyroomacoustics": float(np.mean(np.abs(ours / peer - 1))), "time_s": t})
+    return {"knob": "scattering_model", "error_metric": "mean |RT60/Eyring - 1| over 250 Hz-4 kHz in a uniform "
+            "8x6x3 m plaster shoebox; error_vs_pyroomacoustics: mean |T30/T30_peer - 1| rendered in the 12x9x4 m "
+            "shoebox under an absorbing ceiling; time: one probe", "rows": rows}
 
 
 def _probes(quick: bool):
@@ -290,7 +319,8 @@ def _path_cell(quick: bool):
 def bench_accuracy(reference_rays: int = 1_000_000, quick: bool = False, plot: str | None = None) -> dict:
     from sonicverse_core.progress import progress
 
-    steps = [lambda: _rays_and_bounces(reference_rays, quick), lambda: [_probes(quick)], lambda: [_hrtf(quick)],
+    steps = [lambda: _rays_and_bounces(reference_rays, quick), lambda: [_scattering(quick)],
+             lambda: [_probes(quick)], lambda: [_hrtf(quick)],
              lambda: [_early(quick)], lambda: [_reverb(quick)], lambda: [_blocks(quick)], lambda: [_path_cell(quick)]]
     knobs = [k for step in progress(steps, desc="accuracy knobs") for k in step()]
     for k in knobs:

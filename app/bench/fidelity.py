@@ -85,15 +85,16 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
     return np.asarray(room.rir[0][0], float)
 
 
-def _ours(spec: str, src, lis, seconds: float) -> tuple[np.ndarray, float, float]:
-    from sonicverse_core.acoustics.probes import scene_probes
+def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
+          er_order: int = 1) -> tuple[np.ndarray, float, float]:
+    from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
     from sonicverse_core.scene.spec import load_scene
 
     scene = load_scene(spec)
     t0 = time.perf_counter()
-    probes = scene_probes(scene)
-    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono"), probes=probes)
+    probes = scene_probes(scene, BakeConfig(scattering=scattering))
+    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order), probes=probes)
     t_bake = time.perf_counter() - t0
     x = np.zeros(int(seconds * FS), np.float32)
     x[0] = 1.0
@@ -165,11 +166,11 @@ def _errors(ours: dict, peer: dict, diffuse: bool) -> dict:
     return out
 
 
-def _sealed(rays: int) -> dict:
+def _sealed(scattering: str = "stochastic") -> dict:
     """Sealed rooms: our level difference between the rooms per band vs D = TL - 10 log10(S / A2)."""
     from sonicverse_core.acoustics.coupling import RoomCoupling
     from sonicverse_core.acoustics.paths import path_graph
-    from sonicverse_core.acoustics.probes import scene_probes
+    from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.scene.materials import get_material
     from sonicverse_core.scene.spec import load_scene
 
@@ -178,17 +179,17 @@ def _sealed(rays: int) -> dict:
     G1, G2 = [], []
     t = 0.0
     for lis in ((1.0, 1.0, 1.5), (3.0, 3.2, 1.5)):
-        h, tb, tr = _ours(spec, src, lis, 3.0)
+        h, tb, tr = _ours(spec, src, lis, 3.0, scattering)
         G1.append(room_parameters(h)["G"])
         t += tr
     for lis in ((5.5, 1.0, 1.5), (7.0, 3.2, 1.5)):
-        h, tb, tr = _ours(spec, src, lis, 3.0)
+        h, tb, tr = _ours(spec, src, lis, 3.0, scattering)
         G2.append(room_parameters(h)["G"])
         t += tr
     mean = lambda G: 10 * np.log10(np.mean(10 ** (np.array(G) / 10), axis=0))  # noqa: E731
     D = mean(G1) - mean(G2)
     scene = load_scene(spec)
-    c = RoomCoupling(scene, path_graph(scene), scene_probes(scene))
+    c = RoomCoupling(scene, path_graph(scene), scene_probes(scene, BakeConfig(scattering=scattering)))
     tl = np.array(get_material("Sheetrock").transmission_loss_db)[[3, 4, 5, 6, 7]]
     est = tl - 10 * np.log10(4.0 * 3.0 / c.A[1][[3, 4, 5, 6, 7]])
     err = D - est
@@ -198,8 +199,16 @@ def _sealed(rays: int) -> dict:
             "our_render_s": round(t, 2)}
 
 
-def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0) -> dict:
+def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0,
+                   scattering: str = "stochastic", er_order: int = 1) -> dict:
+    """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");
+    ``er_order``: our image sources' order (``RenderConfig.er_order``)."""
+    from sonicverse_core.acoustics.probes import BakeConfig
     from sonicverse_core.progress import progress
+
+    from sonicverse_core.acoustics.renderer import RenderConfig
+
+    BakeConfig(scattering=scattering), RenderConfig(er_order=er_order)  # checked before anything runs
 
     cases, seconds = [], 3.0
     todo = list(_cases())
@@ -209,7 +218,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         t0 = time.perf_counter()
         h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed)
         t_peer = time.perf_counter() - t0
-        h, t_bake, t_render = _ours(spec, src, lis, seconds)
+        h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order)
         ours, peer = room_parameters(h), room_parameters(h_peer)
         row = {"case": name, "scene": spec, "source": list(src), "listener": list(lis), "bands_hz": list(BANDS),
                "ours": ours, "pyroomacoustics": peer, "vs_pyroomacoustics": _errors(ours, peer, "diffuse" in name),
@@ -219,10 +228,12 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         if dims is not None:
             row["theory"] = _theory_shoebox(dims, walls, floor, ceiling, src, lis)
         cases.append(row)
-    sealed = _sealed(rays)
+    sealed = _sealed(scattering)
     met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
-           f"{rays} rays, receiver radius 0.5 m, seed {seed})", "sample_rate": FS, "cases": cases, "sealed": sealed,
+           f"{rays} rays, receiver radius 0.5 m, seed {seed})", "sample_rate": FS, "scattering": scattering, "er_order": er_order,
+           "cases": cases,
+           "sealed": sealed,
            "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}
     if plot:
         _plot(cases, plot)

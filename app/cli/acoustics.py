@@ -21,7 +21,8 @@ def cmd_render(a) -> int:
     cfg = RenderConfig(sample_rate=a.sample_rate, block=a.block, output=a.output,
                        occlusion=not a.no_occlusion, late_reverb=not a.no_reverb)
     sig, sr = soundbank.load_sound(a.sound)
-    probes = scene_probes(scene, BakeConfig(rays=a.rays), progress=not a.json) if cfg.late_reverb else None
+    probes = (scene_probes(scene, BakeConfig(rays=a.rays, scattering=a.scattering), progress=not a.json)
+              if cfg.late_reverb else None)
     r = AcousticRenderer(scene, cfg, probes=probes)
     r.add_source(sig, src, loop=True, sample_rate=sr)
     r.add_listener(lis[:3], lis[3] if len(lis) == 4 else 0.0)
@@ -57,7 +58,8 @@ def cmd_bake(a) -> int:
         positions = np.array(a.at)
     else:
         positions = default_probe_positions(scene, a.probes, rng=np.random.default_rng(a.seed))
-    probes = bake(scene, positions, BakeConfig(rays=a.rays, seed=a.seed), progress=not a.json)
+    probes = bake(scene, positions, BakeConfig(rays=a.rays, seed=a.seed, scattering=a.scattering),
+                  progress=not a.json)
     if a.json:
         print(json.dumps({"scene": scene.spec, "probes": [p.to_json() for p in probes]}))
     else:
@@ -68,6 +70,11 @@ def cmd_bake(a) -> int:
 
 def add_audio_commands(sub, bench_sub) -> None:
     from app.cli.audio import add_commands
+    from sonicverse_core.acoustics.probes import SCATTERING
+
+    scattering_help = ("how a bounce scatters in the bake: stochastic (the scattering coefficient as the probability "
+                       "of a Lambertian bounce) or vector (blended directions, as pyroomacoustics; default: "
+                       "%(default)s)")
 
     add_commands(sub)
     r = sub.add_parser("render", help="render binaural audio of one source to a file",
@@ -87,6 +94,7 @@ def add_audio_commands(sub, bench_sub) -> None:
                    help="binaural (HRTF), stereo (panned) or mono (default: %(default)s)")
     r.add_argument("--rays", type=A.count(100, 10_000_000), default=2000,
                    help="rays per reverb probe (default: %(default)s)")
+    r.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
     r.add_argument("--no-occlusion", action="store_true", help="no transmission loss through walls and doors")
     r.add_argument("--no-reverb", action="store_true", help="no early reflections and no late reverb")
     r.add_argument("--json", action="store_true", help="print one JSON object")
@@ -98,6 +106,7 @@ def add_audio_commands(sub, bench_sub) -> None:
                    "(default: one per room)")
     b.add_argument("--rays", type=A.count(100, 10_000_000), default=2000,
                    help="rays per probe (default: %(default)s)")
+    b.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
     b.add_argument("--at", action="append", type=A.argtype(A.xyz), help="X,Y,Z of a probe (repeatable)")
     b.add_argument("--seed", type=A.seed, default=0, help="seed of the ray directions (default: %(default)s)")
     b.add_argument("--json", action="store_true", help="print one JSON object")
@@ -135,6 +144,9 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--plot", type=A.out_file(".png"), help="write a PNG of ours vs the peer per parameter")
     bf.add_argument("--quick", action="store_true", help="three cases only")
     bf.add_argument("--seed", type=A.seed, default=0, help="seed of the peer's ray tracing (default: %(default)s)")
+    bf.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
+    bf.add_argument("--er-order", type=int, choices=(1, 2), default=1,
+                    help="our early reflections' image-source order (default: %(default)s)")
     bf.add_argument("--json", action="store_true", help="(always JSON)")
     bf.set_defaults(func=cmd_bench_fidelity)
 
@@ -156,5 +168,5 @@ def cmd_bench_accuracy(a) -> int:
 def cmd_bench_fidelity(a) -> int:
     from app.bench.fidelity import bench_fidelity
 
-    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed)))
+    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order)))
     return 0
