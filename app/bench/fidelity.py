@@ -70,7 +70,34 @@ def _pra_material(name: str):
                         scattering=m.scattering)
 
 
-def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0):
+def _pra_floors(room, corners, H, floors, walls, floor, ceiling):
+    """The extruded room's walls with its floor and ceiling replaced by one polygon per entry of ``floors``
+    ((xy corners, floor material, ceiling material)); a material's coefficients are taken from an outline wall of
+    that material (pyroomacoustics resamples them to its bands when it builds those)."""
+    import pyroomacoustics as pra
+
+    names = (walls if isinstance(walls, list) else [walls] * len(corners)) + [floor, ceiling]
+    known = {m: (w.absorption, w.scatter) for m, w in zip(names, room.walls)}
+
+    def coeffs(name):
+        if name not in known:
+            raise ValueError(f"no outline wall, floor or ceiling of {name} to take its coefficients from")
+        return known[name]
+
+    out = list(room.walls[:len(corners)])
+    for xy, fmat, cmat in floors:
+        xy = np.asarray(xy, float)
+        for z, mat, up in ((0.0, fmat, False), (H, cmat, True)):
+            pts = np.c_[xy, np.full(len(xy), z)]
+            n = np.cross(pts[1] - pts[0], pts[2] - pts[1])
+            if (n[2] > 0) != up:  # outward normals: down for a floor, up for a ceiling
+                pts = pts[::-1]
+            a, sc = coeffs(mat)
+            out.append(pra.wall_factory(pts.T, a, sc, "ceiling" if up else "floor"))
+    return pra.Room(out, fs=room.fs, max_order=room.max_order, air_absorption=True, ray_tracing=True)
+
+
+def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0, floors=None):
     import pyroomacoustics as pra
 
     pra.random.seed(seed)  # its ray tracing draws from NumPy's and C++'s generators: the same run, the same numbers
@@ -78,6 +105,8 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
     room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=mats,
                                  ray_tracing=True, air_absorption=True)
     room.extrude(H, materials={"floor": _pra_material(floor), "ceiling": _pra_material(ceiling)})
+    if floors:  # rooms with floors and ceilings of their own: the outline's floor and ceiling cut per room
+        room = _pra_floors(room, corners, H, floors, walls, floor, ceiling)
     room.set_ray_tracing(n_rays=rays, receiver_radius=0.5)
     room.add_source(list(src))
     room.add_microphone(np.array(lis, float)[:, None])
@@ -86,14 +115,14 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
 
 
 def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
-          er_order: int = 1) -> tuple[np.ndarray, float, float]:
+          er_order: int = 1, per_room: bool = False) -> tuple[np.ndarray, float, float]:
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
     from sonicverse_core.scene.spec import load_scene
 
     scene = load_scene(spec)
     t0 = time.perf_counter()
-    probes = scene_probes(scene, BakeConfig(scattering=scattering))
+    probes = scene_probes(scene, BakeConfig(scattering=scattering, per_room=per_room))
     r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order), probes=probes)
     t_bake = time.perf_counter() - t0
     x = np.zeros(int(seconds * FS), np.float32)
@@ -135,6 +164,18 @@ def _cases():
            (2.0, 2.6, 1.5), (6.0, 1.7, 1.5), None)
     yield ("two rooms, open door, no line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, two,
            (2.0, 2.6, 1.5), (6.0, 0.6, 1.5), None)
+    # a dead room (every surface absorbing) beside a live one: coupled decay at its starkest
+    dead = "AcousticCeilingTiles"
+    walls = [dead if k in (0, 10, 11) else ref.PARTITION if k in (1, 2, 3, 7, 8, 9) else ref.WALLS
+             for k in range(len(TWO_ROOMS))]
+    floors = [([(0, 0), (3.95, 0), (3.95, 4), (0, 4)], dead, dead),
+              ([(3.95, 1.55), (4.05, 1.55), (4.05, 2.45), (3.95, 2.45)], ref.FLOOR, ref.CEILING),
+              ([(4.05, 0), (8, 0), (8, 4), (4.05, 4)], ref.FLOOR, ref.CEILING)]
+    spec = f"builtin:two-rooms?door=open&west={dead}"
+    yield ("dead room beside a live one, both in the dead", spec, TWO_ROOMS, 3.0, (walls, ref.FLOOR, ref.CEILING, floors),
+           (1.2, 1.2, 1.5), (2.8, 3.0, 1.5), None)
+    yield ("dead room beside a live one, source in the live", spec, TWO_ROOMS, 3.0,
+           (walls, ref.FLOOR, ref.CEILING, floors), (6.0, 1.0, 1.5), (1.0, 0.6, 1.5), None)
 
 
 def _theory_shoebox(dims, walls, floor, ceiling, src, lis) -> dict:
@@ -166,7 +207,7 @@ def _errors(ours: dict, peer: dict, diffuse: bool) -> dict:
     return out
 
 
-def _sealed(scattering: str = "stochastic") -> dict:
+def _sealed(scattering: str = "stochastic", per_room: bool = False) -> dict:
     """Sealed rooms: our level difference between the rooms per band vs D = TL - 10 log10(S / A2)."""
     from sonicverse_core.acoustics.coupling import RoomCoupling
     from sonicverse_core.acoustics.paths import path_graph
@@ -179,17 +220,18 @@ def _sealed(scattering: str = "stochastic") -> dict:
     G1, G2 = [], []
     t = 0.0
     for lis in ((1.0, 1.0, 1.5), (3.0, 3.2, 1.5)):
-        h, tb, tr = _ours(spec, src, lis, 3.0, scattering)
+        h, tb, tr = _ours(spec, src, lis, 3.0, scattering, per_room=per_room)
         G1.append(room_parameters(h)["G"])
         t += tr
     for lis in ((5.5, 1.0, 1.5), (7.0, 3.2, 1.5)):
-        h, tb, tr = _ours(spec, src, lis, 3.0, scattering)
+        h, tb, tr = _ours(spec, src, lis, 3.0, scattering, per_room=per_room)
         G2.append(room_parameters(h)["G"])
         t += tr
     mean = lambda G: 10 * np.log10(np.mean(10 ** (np.array(G) / 10), axis=0))  # noqa: E731
     D = mean(G1) - mean(G2)
     scene = load_scene(spec)
-    c = RoomCoupling(scene, path_graph(scene), scene_probes(scene, BakeConfig(scattering=scattering)))
+    c = RoomCoupling(scene, path_graph(scene), scene_probes(scene, BakeConfig(scattering=scattering,
+                                                                                     per_room=per_room)))
     tl = np.array(get_material("Sheetrock").transmission_loss_db)[[3, 4, 5, 6, 7]]
     est = tl - 10 * np.log10(4.0 * 3.0 / c.A[1][[3, 4, 5, 6, 7]])
     err = D - est
@@ -200,9 +242,10 @@ def _sealed(scattering: str = "stochastic") -> dict:
 
 
 def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0,
-                   scattering: str = "stochastic", er_order: int = 1) -> dict:
+                   scattering: str = "stochastic", er_order: int = 1, per_room: bool = False) -> dict:
     """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");
-    ``er_order``: our image sources' order (``RenderConfig.er_order``)."""
+    ``er_order``: our image sources' order (``RenderConfig.er_order``); ``per_room``: probes baked per room, the
+    rooms' decays coupled (``BakeConfig.per_room``)."""
     from sonicverse_core.acoustics.probes import BakeConfig
     from sonicverse_core.progress import progress
 
@@ -214,11 +257,13 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     todo = list(_cases())
     if quick:
         todo = todo[1:2] + todo[4:5] + todo[6:7]
-    for name, spec, corners, H, (walls, floor, ceiling), src, lis, dims in progress(todo, len(todo), "rooms"):
+    for name, spec, corners, H, mats, src, lis, dims in progress(todo, len(todo), "rooms"):
+        walls, floor, ceiling = mats[:3]
         t0 = time.perf_counter()
-        h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed)
+        h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed,
+                              floors=mats[3] if len(mats) > 3 else None)
         t_peer = time.perf_counter() - t0
-        h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order)
+        h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order, per_room)
         ours, peer = room_parameters(h), room_parameters(h_peer)
         row = {"case": name, "scene": spec, "source": list(src), "listener": list(lis), "bands_hz": list(BANDS),
                "ours": ours, "pyroomacoustics": peer, "vs_pyroomacoustics": _errors(ours, peer, "diffuse" in name),
@@ -228,10 +273,11 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         if dims is not None:
             row["theory"] = _theory_shoebox(dims, walls, floor, ceiling, src, lis)
         cases.append(row)
-    sealed = _sealed(scattering)
+    sealed = _sealed(scattering, per_room)
     met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
            f"{rays} rays, receiver radius 0.5 m, seed {seed})", "sample_rate": FS, "scattering": scattering, "er_order": er_order,
+           "per_room": per_room,
            "cases": cases,
            "sealed": sealed,
            "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}

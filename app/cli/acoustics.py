@@ -21,7 +21,8 @@ def cmd_render(a) -> int:
     cfg = RenderConfig(sample_rate=a.sample_rate, block=a.block, output=a.output,
                        occlusion=not a.no_occlusion, late_reverb=not a.no_reverb)
     sig, sr = soundbank.load_sound(a.sound)
-    probes = (scene_probes(scene, BakeConfig(rays=a.rays, scattering=a.scattering), progress=not a.json)
+    probes = (scene_probes(scene, BakeConfig(rays=a.rays, scattering=a.scattering, per_room=a.per_room),
+                           progress=not a.json)
               if cfg.late_reverb else None)
     r = AcousticRenderer(scene, cfg, probes=probes)
     r.add_source(sig, src, loop=True, sample_rate=sr)
@@ -58,7 +59,8 @@ def cmd_bake(a) -> int:
         positions = np.array(a.at)
     else:
         positions = default_probe_positions(scene, a.probes, rng=np.random.default_rng(a.seed))
-    probes = bake(scene, positions, BakeConfig(rays=a.rays, seed=a.seed, scattering=a.scattering),
+    probes = bake(scene, positions, BakeConfig(rays=a.rays, seed=a.seed, scattering=a.scattering,
+                                               per_room=a.per_room),
                   progress=not a.json)
     if a.json:
         print(json.dumps({"scene": scene.spec, "probes": [p.to_json() for p in probes]}))
@@ -72,6 +74,8 @@ def add_audio_commands(sub, bench_sub) -> None:
     from app.cli.audio import add_commands
     from sonicverse_core.acoustics.probes import SCATTERING
 
+    per_room_help = ("bake each room's own decay and couple the rooms' decays (each room its own reverb, double "
+                     "slopes between rooms); default: each probe bakes the whole connected space")
     scattering_help = ("how a bounce scatters in the bake: stochastic (the scattering coefficient as the probability "
                        "of a Lambertian bounce) or vector (blended directions, as pyroomacoustics; default: "
                        "%(default)s)")
@@ -95,6 +99,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     r.add_argument("--rays", type=A.count(100, 10_000_000), default=2000,
                    help="rays per reverb probe (default: %(default)s)")
     r.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
+    r.add_argument("--per-room", action="store_true", help=per_room_help)
     r.add_argument("--no-occlusion", action="store_true", help="no transmission loss through walls and doors")
     r.add_argument("--no-reverb", action="store_true", help="no early reflections and no late reverb")
     r.add_argument("--json", action="store_true", help="print one JSON object")
@@ -107,6 +112,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     b.add_argument("--rays", type=A.count(100, 10_000_000), default=2000,
                    help="rays per probe (default: %(default)s)")
     b.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
+    b.add_argument("--per-room", action="store_true", help=per_room_help)
     b.add_argument("--at", action="append", type=A.argtype(A.xyz), help="X,Y,Z of a probe (repeatable)")
     b.add_argument("--seed", type=A.seed, default=0, help="seed of the ray directions (default: %(default)s)")
     b.add_argument("--json", action="store_true", help="print one JSON object")
@@ -122,6 +128,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     ba.add_argument("--scene", default="builtin:apartment", help="scene spec (default: %(default)s)")
     ba.add_argument("--sample-rate", type=A.count(8000, 192000), default=48000, help="Hz (default: %(default)s)")
     ba.add_argument("--block", type=A.count(16, 8192), default=256, help="frames per block (default: %(default)s)")
+    ba.add_argument("--per-room", action="store_true", help=per_room_help)
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
@@ -145,6 +152,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--quick", action="store_true", help="three cases only")
     bf.add_argument("--seed", type=A.seed, default=0, help="seed of the peer's ray tracing (default: %(default)s)")
     bf.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
+    bf.add_argument("--per-room", action="store_true", help=per_room_help)
     bf.add_argument("--er-order", type=int, choices=(1, 2), default=1,
                     help="our early reflections' image-source order (default: %(default)s)")
     bf.add_argument("--json", action="store_true", help="(always JSON)")
@@ -154,7 +162,8 @@ def add_audio_commands(sub, bench_sub) -> None:
 def cmd_bench_audio(a) -> int:
     from app.bench.engine import bench_audio
 
-    print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block)))
+    print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block,
+                                 per_room=a.per_room)))
     return 0
 
 
@@ -168,5 +177,5 @@ def cmd_bench_accuracy(a) -> int:
 def cmd_bench_fidelity(a) -> int:
     from app.bench.fidelity import bench_fidelity
 
-    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order)))
+    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room)))
     return 0

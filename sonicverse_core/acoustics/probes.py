@@ -40,7 +40,10 @@ SCATTERING = ("stochastic", "vector")
 @dataclass(frozen=True)
 class BakeConfig:
     """rays per probe; max_bounces; max_time (s) of tracing; hist_dt (s) of the decay histogram; seed;
-    scattering: "stochastic" or "vector" (the module's docstring)."""
+    scattering: "stochastic" or "vector" (the module's docstring); per_room: a probe in one of the scene's rooms
+    bakes that room's own decay (rays that leave it through an opening are lost to it) and the renderer couples
+    the rooms' decays (``coupling.RoomCoupling.late_split``); off: each probe bakes the decay of the whole
+    connected space around it."""
 
     rays: int = 2000
     max_bounces: int = 400
@@ -48,6 +51,7 @@ class BakeConfig:
     hist_dt: float = 0.002
     seed: int = 0
     scattering: str = "stochastic"
+    per_room: bool = False
 
     def __post_init__(self):
         if not (16 <= self.rays <= 10_000_000):
@@ -70,6 +74,7 @@ class Probe:
     box_hi: np.ndarray
     box_materials: tuple
     enclosed: float  # fraction of rays that hit something (1: closed room)
+    room: str | None = None  # the room whose own decay it baked (rays leaving it were lost); None: the whole space
 
     @property
     def volume(self) -> float:
@@ -79,7 +84,7 @@ class Probe:
         return {"position": np.round(self.position, 4).tolist(), "rt60": np.round(self.rt60, 4).tolist(),
                 "edt": np.round(self.edt, 4).tolist(), "box_lo": np.round(self.box_lo, 4).tolist(),
                 "box_hi": np.round(self.box_hi, 4).tolist(), "box_materials": list(self.box_materials),
-                "enclosed": round(self.enclosed, 4)}
+                "enclosed": round(self.enclosed, 4), "room": self.room}
 
 
 def _uniform_dirs(rng, n):
@@ -127,8 +132,28 @@ def decay_times(energy: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     return rt, edt
 
 
-def trace_decay(caster, position: np.ndarray, config: BakeConfig) -> tuple[np.ndarray, float]:
-    """Ensemble energy in flight (9, T) on a grid of ``hist_dt`` and the fraction of rays that hit a surface."""
+ROOM_MARGIN = 0.5  # m: a hit farther than this outside the probe's room's footprint has left the room
+
+
+def outside_footprint(footprint: np.ndarray, xy: np.ndarray, margin: float = ROOM_MARGIN) -> np.ndarray:
+    """(n,) bool: points (n, 2) outside the polygon by more than ``margin`` (walls stand on its outline)."""
+    from sonicverse_core.scene.model import points_in_polygon
+
+    out = ~points_in_polygon(xy, footprint)
+    if out.any():
+        p = xy[out]
+        a, b = footprint, np.roll(footprint, -1, axis=0)
+        ab = b - a
+        t = np.clip(np.einsum("nkj,kj->nk", p[:, None] - a[None], ab) / np.maximum(np.sum(ab * ab, 1), 1e-12), 0, 1)
+        d = np.min(np.linalg.norm(p[:, None] - (a[None] + t[..., None] * ab[None]), axis=2), axis=1)
+        out[np.flatnonzero(out)] = d > margin
+    return out
+
+
+def trace_decay(caster, position: np.ndarray, config: BakeConfig, room=None) -> tuple[np.ndarray, float]:
+    """Ensemble energy in flight (9, T) on a grid of ``hist_dt`` and the fraction of rays that hit a surface.
+    ``room`` (a :class:`Room`): the probe's own room; a ray whose next surface lies outside it has left through an
+    opening and is lost to this room (its energy belongs to the neighbour, which the coupling accounts for)."""
     rng = np.random.default_rng(config.seed)
     alpha, scat, _ = material_arrays()
     nb = int(np.ceil(config.max_time / config.hist_dt)) + 1
@@ -158,8 +183,13 @@ def trace_decay(caster, position: np.ndarray, config: BakeConfig) -> tuple[np.nd
         idx = np.concatenate([(i0[:, None] + off).ravel(), (i1[:, None] + off).ravel()])
         w = np.concatenate([e_mid.ravel(), -e_mid.ravel()])
         acc += np.bincount(idx, w, minlength=nbands * (nb + 1)).reshape(nbands, nb + 1)
-        e = e * np.exp(-AIR_ABSORPTION[None] * seg[:, None])
+        e_next = e * np.exp(-AIR_ABSORPTION[None] * seg[:, None])
         keep = hit & (t1 < config.max_time)
+        e = e_next
+        if room is not None and keep.any():
+            ki = np.flatnonzero(keep)
+            at = o[ki, :2] + d[ki, :2] * h.distance[ki, None]
+            keep[ki[outside_footprint(room.footprint, at)]] = False
         mat = h.material[keep]
         e = e[keep] * (1.0 - alpha[mat])
         nrm = h.normal[keep]
@@ -220,36 +250,42 @@ def proxy_box(caster, position: np.ndarray, far: float = 50.0, cone_deg: float =
     return lo, hi, tuple(mats)
 
 
-def bake_probe(caster, position, config: BakeConfig = BakeConfig()) -> Probe:
+def bake_probe(caster, position, config: BakeConfig = BakeConfig(), room=None) -> Probe:
+    """``room``: the probe's own room (its decay then leaves out what escapes through openings: see
+    :func:`trace_decay`); None: the whole connected space."""
     position = np.asarray(position, np.float64)
     if position.shape != (3,) or not np.all(np.isfinite(position)):
         raise ConfigError("a probe position must be 3 finite numbers")
-    energy, enclosed = trace_decay(caster, position, config)
+    energy, enclosed = trace_decay(caster, position, config, room)
     rt, edt = decay_times(energy, config.hist_dt)
     lo, hi, mats = proxy_box(caster, position)
-    return Probe(position, rt, edt, lo, hi, mats, enclosed)
+    return Probe(position, rt, edt, lo, hi, mats, enclosed, None if room is None else room.name)
 
 
-def _cache_key(scene, positions: np.ndarray, config: BakeConfig) -> str:
+def _cache_key(scene, positions: np.ndarray, config: BakeConfig, rooms: list) -> str:
     h = hashlib.sha256()
     h.update(scene.static_hash().encode())
     h.update(np.round(np.asarray(positions, np.float64), 4).tobytes())
     h.update(json.dumps(asdict(config), sort_keys=True).encode())
-    h.update(b"probes-v2")
+    for r in rooms:
+        h.update(b"-" if r is None else np.round(np.asarray(r.footprint, np.float64), 4).tobytes())
+    h.update(b"probes-v7")
     return h.hexdigest()[:24]
 
 
 def bake(scene, positions, config: BakeConfig = BakeConfig(), caster=None, cache: bool = True,
          progress: bool = False) -> list[Probe]:
-    """Bake probes at ``positions`` (k, 3), through the on-disk cache."""
+    """Bake probes at ``positions`` (k, 3), through the on-disk cache (``config.per_room``: each probe in a room
+    bakes that room's own decay)."""
     from sonicverse_core.geometry.raycast import SceneRayCaster
 
     positions = np.atleast_2d(np.asarray(positions, np.float64))
+    rooms = [scene.room_at(p[:2]) if config.per_room and scene.rooms else None for p in positions]
     path = None
     if cache:
         from assets_manifest import cache_dir
 
-        path = cache_dir() / "bakes" / f"{_cache_key(scene, positions, config)}.json"
+        path = cache_dir() / "bakes" / f"{_cache_key(scene, positions, config, rooms)}.json"
         if path.is_file():
             try:
                 cached = json.loads(path.read_text())
@@ -264,7 +300,8 @@ def bake(scene, positions, config: BakeConfig = BakeConfig(), caster=None, cache
     caster = caster or SceneRayCaster(scene)
     from sonicverse_core.progress import progress as bar
 
-    probes = [bake_probe(caster, p, config) for p in bar(positions, len(positions), "baking probes", progress)]
+    probes = [bake_probe(caster, p, config, r)
+              for p, r in zip(bar(positions, len(positions), "baking probes", progress), rooms)]
     if path is not None:
         from sonicverse_core.storage import write_text_atomic
 
@@ -284,10 +321,13 @@ def _probe_from_json(d: dict) -> Probe:
             raise ValueError(f"probe '{k}' is not {shape} finite numbers")
     mats = tuple(d["box_materials"])
     enclosed = float(d["enclosed"])
+    room = d.get("room")
+    if room is not None and not isinstance(room, str):
+        raise ValueError("probe 'room' must be a room's name or null")
     if np.any(arr["rt60"] <= 0) or np.any(arr["edt"] < 0) or np.any(arr["box_hi"] <= arr["box_lo"]) \
             or len(mats) != 6 or any(m not in known for m in mats) or not 0 <= enclosed <= 1:
         raise ValueError("probe values out of range (decay times, box, materials or enclosed fraction)")
-    return Probe(arr["position"], arr["rt60"], arr["edt"], arr["box_lo"], arr["box_hi"], mats, enclosed)
+    return Probe(arr["position"], arr["rt60"], arr["edt"], arr["box_lo"], arr["box_hi"], mats, enclosed, room)
 
 
 def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rng=None) -> np.ndarray:

@@ -69,6 +69,7 @@ from sonicverse_core.scene.materials import BANDS
 MID = slice(4, 7)  # 500 Hz - 2 kHz
 HEAD_RADIUS = 0.0875  # m: the stereo panner's head (Woodworth's ITD)
 MAX_MIXING_TIME = 0.08  # s: the late tail starts at most this long after the direct sound
+SLOW_SEED = 1000  # the slowest coupled mode's tails: noise independent of the rooms' own
 
 
 @lru_cache(maxsize=8)
@@ -181,7 +182,7 @@ class AcousticRenderer:
                 self._er_decode = dec.astype(np.float32)
             self.subsystems.append("early_reflections")
         self._late_on = cfg.late_reverb and self.probes is not None
-        self.coupling, self._groups = None, 1
+        self.coupling, self._groups, self._modal = None, 1, False
         if self._late_on:
             self._probe_rt = np.array([p.rt60 for p in self.probes])
             self._probe_vol = np.array([p.volume for p in self.probes])
@@ -196,6 +197,20 @@ class AcousticRenderer:
                     self.subsystems.append("coupled_rooms")
             # late sends: 0 the listener's room (or rooms unknown), 1 + r from room r
             self._groups = len(self.coupling.rooms) + 1 if self.coupling is not None else 1
+            # the tails: each probe's as baked, and, with coupled rooms, each probe's room with its doorways shut
+            # (0.161 V / A_own): a room's decay with its doors as they are lies between the two
+            self._tail_rt = self._probe_rt
+            self._modal = (self.coupling is not None and cfg.reverb == "convolution"
+                           and any(p.room is not None for p in self.probes))  # probes baked per room
+            if self._modal:
+                c = self.coupling
+                self._probe_room = c.room_of(self._probe_pos[:, :2])
+                shut, self._shut = [], np.arange(len(self.probes))  # the tail index of each probe's shut-door decay
+                for k, r in enumerate(self._probe_room):
+                    if r >= 0 and c.S_open[r] > 0:  # a room without openings has no shut-door tail of its own
+                        self._shut[k] = len(self.probes) + len(shut)
+                        shut.append(np.maximum(0.161 * c.V[r] / c.A[r], self._probe_rt[k]))
+                self._tail_rt = np.vstack([self._probe_rt] + shut)
         max_delay = cfg.max_distance / SPEED_OF_SOUND + 0.01 + (self.hrtf.onsets.max() if self.hrtf else 0)
         if self._late_on:
             max_delay += MAX_MIXING_TIME  # the late send's pre-delay
@@ -313,8 +328,12 @@ class AcousticRenderer:
             else:
                 from sonicverse_core.acoustics.reverb import ConvolutionReverb
 
-                st["conv"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._probe_rt,
+                st["conv"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._tail_rt,
                                                groups=self._groups, **self._tail_colour())
+                if self._modal:  # the coupled rooms' slowest mode: its own input (its shapes differ per group) and
+                    # its own noise (tails of other seeds: the two add in energy, not in amplitude)
+                    st["conv_slow"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._tail_rt,
+                                                        seed=SLOW_SEED, groups=self._groups, **self._tail_colour())
             st["late_level"] = None
             st["sends"] = np.zeros((self._groups, B), np.float32)
             st["seen"] = np.zeros(self._groups, bool)
@@ -615,7 +634,11 @@ class AcousticRenderer:
             t_mix = float(np.clip(np.sqrt(max(vol, 0.0)) / 1000.0, 0.005, MAX_MIXING_TIME))  # Polack: sqrt(V) ms
             st["late_key"], st["late_params"] = lis.position.copy(), (w, lo, hi, level, t_mix)
             st["room_reverbs"] = int(np.count_nonzero(w > 1e-4))  # tails convolved for this listener
+            st["late_gen"] = st.get("late_gen", 0) + 1  # the listener moved: the modal mix is made again
         w, lo, hi, level, t_mix = st["late_params"]
+        if self._modal and st.get("lis_room", -1) >= 0:
+            self._late_modal(st, lis, dist, occ, w, lo, t_mix, out)
+            return
         # Barron & Lee 1988: the late level falls with source distance; a source behind walls excites the
         # coupled space: the send keeps the square root of the direct path's mid-band transmission
         group, use_occ, shapes = self._late_groups(st, n)
@@ -635,7 +658,71 @@ class AcousticRenderer:
             add = st["fdn"].process(st["mono"], out=st["fdn_out"])
             mix_ramped(add, 1.0, 1.0, lv0, level, 1.0, out)
             return
+        if len(w) < len(self._tail_rt):  # the shut-door tails play no part outside the rooms
+            w = np.r_[w, np.zeros(len(self._tail_rt) - len(w))]
+            st["late_params"] = (w, lo, hi, level, t_mix)
         st["conv"].process(sends, w, shapes, out=out, level=(lv0, level), shapes_key=st["shapes_key"])
+
+    def _late_modal(self, st, lis, dist, occ, w, lo, t_mix, out) -> None:
+        """The late reverb of coupled rooms (``coupling.late_split``): each source room's send, shaped per band,
+        feeds the listener's own room's decay (its probes' tails, blended between doors open and shut as the room's
+        decay with its doors as they are) and the slowest mode's (the tails of the room it rings in); the energies
+        are the rooms' statistical energy balance, no Sabine level."""
+        n, B = self._n, self.cfg.block
+        c, lr = self.coupling, st["lis_room"]
+        group, use_occ, _ = self._late_groups(st, n)
+        split = c.late_split()
+        key = (split["gen"], st["late_gen"])
+        if st.get("modal_key") != key:
+            st["modal_w"], st["modal_shapes"] = self._modal_mix(st, lis, w, split, lr)
+            st["modal_key"] = key
+            st["room_reverbs"] = int(np.count_nonzero(st["modal_w"][0] > 1e-4) +
+                                     np.count_nonzero(st["modal_w"][1] > 1e-4))
+        self.stats["room_reverbs"] = st["room_reverbs"]
+        sends = st["sends"]
+        late_send(self._ring, (self.write - B) % self.hist, dist, occ, use_occ, group, lo, st["send"][:n],
+                  st["send_delay"][:n], st["fresh"][:n], sends, float(self.cfg.sample_rate), SPEED_OF_SOUND, t_mix)
+        self.stats["rooms_sending"] = groups_sending(group, st["send"][:n], st["seen"])
+        (w_own, w_slow), (sh_own, sh_slow) = st["modal_w"], st["modal_shapes"]
+        st["conv"].process(sends, w_own, sh_own, out=out, shapes_key=key)
+        st["conv_slow"].process(sends, w_slow, sh_slow, out=out, shapes_key=key)
+
+    def _modal_mix(self, st, lis, w, split, lr):
+        """Tail weights (own, slow) over ``self._tail_rt`` and per-group per-band amplitudes (own, slow) (G, 9)."""
+        P = len(self.probes)
+        rt = self._tail_rt
+
+        def blend(room, rt_now, weights):
+            """Amplitude weights over the tails for ``room``'s probes (energy ``weights``), blended between doors
+            open and shut so that the mid-band RT is ``rt_now``; and the blend's energy per band re the tails'
+            normalisation (each tail carries rt_b / rt_mid of a flat one)."""
+            mine = np.flatnonzero(self._probe_room == room)
+            if len(mine) == 0:
+                mine = np.array([int(np.argmax(weights))])
+            p = weights[mine] if weights[mine].sum() > 0 else np.ones(len(mine))
+            p = p / p.sum()
+            shut = self._shut[mine]
+            o, s_ = rt[mine].T @ p, rt[shut].T @ p  # (9,) room-mean open and shut RTs
+            span = s_[MID].mean() - o[MID].mean()  # a room without openings: no shut-door tail of its own
+            beta = float(np.clip((rt_now[MID].mean() - o[MID].mean()) / span, 0.0, 1.0)) \
+                if span > 0.01 * o[MID].mean() else 0.0
+            out = np.zeros(len(rt))
+            out[mine] = np.sqrt(p * (1 - beta))
+            out[shut] += np.sqrt(p * beta)
+            e = (1 - beta) * o / o[MID].mean() + beta * s_ / s_[MID].mean()
+            return out, e
+
+        d2 = np.sum((self._probe_pos - lis.position) ** 2, axis=1)
+        near = 1 / np.maximum(d2, 0.01)
+        w_own, e_own = blend(lr, split["own_rt"][lr], np.asarray(w[:P], float) ** 2)
+        w_slow, e_slow = blend(split["slow_room"], split["slow_rt"], near)
+        E, f = split["energy"][:, lr], split["slow"][:, lr]  # (R_s, 9)
+        own = np.sqrt(np.maximum(E * (1 - f), 0.0) / np.maximum(e_own, 1e-9))
+        slow = np.sqrt(np.maximum(E * f, 0.0) / np.maximum(e_slow, 1e-9))
+        sh_own, sh_slow = np.empty((self._groups, len(BANDS))), np.empty((self._groups, len(BANDS)))
+        sh_own[0], sh_own[1:] = own[lr], own
+        sh_slow[0], sh_slow[1:] = slow[lr], slow
+        return (w_own, w_slow), (sh_own, sh_slow)
 
     def _late_groups(self, st, n: int):
         """Per source, which send it joins (0: the listener's room, or rooms unknown; 1 + r: room r, filtered by
@@ -678,7 +765,7 @@ class AcousticRenderer:
         for key in ("hist", "acc", "er_hist", "er_acc", "amb"):
             if key in st:
                 st[key][:] = 0
-        for key in ("fdn", "conv"):
+        for key in ("fdn", "conv", "conv_slow"):
             if key in st:
                 st[key].reset()
         st["limit"], st["late_level"], st["late_key"] = 1.0, None, None

@@ -3,7 +3,8 @@
 - ``builtin:l-room`` an L-shaped room (the square [0, 6] x [0, 6] without its [3, 6] x [3, 6] quarter), 3 m high;
 - ``builtin:two-rooms?door=open|closed|sealed`` two 4 x 4 x 3 m rooms side by side, joined at x = 4 by a 0.1 m
   stud partition (``Sheetrock``, 10 kg/m^2) with a 0.9 x 2.1 m doorway in its middle (a hinged ``door`` leaf, 8
-  kg/m^2, open or closed), or with no doorway at all (sealed).
+  kg/m^2, open or closed), or with no doorway at all (sealed); ``&west=MATERIAL`` / ``&east=MATERIAL`` give that
+  room's walls, floor and ceiling one material (a dead room beside a live one: coupled-room decay).
 
 Walls, floor and ceiling are boxes 0.2 m thick (the partition 0.1 m), so they are solid for rays, rooms, probes
 and paths alike. Surfaces: plaster walls, parquet floor, smooth plaster ceiling.
@@ -47,9 +48,15 @@ def l_room(size: float = 6.0, H: float = 3.0) -> Scene:
     return Scene("l-room", _shell(S, S, H, walls), [], [room], spec="builtin:l-room", mapping_name="explicit")
 
 
-def two_rooms(door: str = "open", L: float = 8.0, W: float = 4.0, H: float = 3.0) -> Scene:
+def two_rooms(door: str = "open", L: float = 8.0, W: float = 4.0, H: float = 3.0, west: str | None = None,
+              east: str | None = None) -> Scene:
     if door not in ("open", "closed", "sealed"):
         raise SceneSpecError(f"two-rooms: door must be open, closed or sealed, got '{door}'")
+    from sonicverse_core.scene.materials import MATERIALS
+
+    for side, m in (("west", west), ("east", east)):
+        if m is not None and m not in MATERIALS:
+            raise SceneSpecError(f"two-rooms: unknown {side} material '{m}'; use one of {', '.join(sorted(MATERIALS))}")
     xm, t = L / 2, T_PARTITION / 2
     y0, y1 = W / 2 - DOOR_WIDTH / 2, W / 2 + DOOR_WIDTH / 2
     walls = [((-T, -T, 0), (0, W + T, H), WALLS), ((L, -T, 0), (L + T, W + T, H), WALLS),
@@ -61,10 +68,23 @@ def two_rooms(door: str = "open", L: float = 8.0, W: float = 4.0, H: float = 3.0
                   ((xm - t, y0, DOOR_HEIGHT), (xm + t, y1, H), PARTITION)]
     rooms = [Room("west", "living room", np.array([(0, 0), (xm - t, 0), (xm - t, W), (0, W)], float), 0.0, H),
              Room("east", "bedroom", np.array([(xm + t, 0), (L, 0), (L, W), (xm + t, W)], float), 0.0, H)]
+    parts = _shell(L, W, H, walls)
+    if west or east:  # each room's own surfaces: the outer shell cut at the partition
+        parts = []
+        for name, x0, x1, mat in (("west", -T, xm, west), ("east", xm, L + T, east)):
+            wm, fm, cm = (mat, mat, mat) if mat else (WALLS, FLOOR, CEILING)
+            parts += [StaticPart(f"floor_{name}", StructureKind.FLOOR, "floor", fm, _box((x0, -T, -T), (x1, W + T, 0))),
+                      StaticPart(f"ceiling_{name}", StructureKind.CEILING, "ceiling", cm,
+                                 _box((x0, -T, H), (x1, W + T, H + T))),
+                      StaticPart(f"wall_{name}_s", StructureKind.WALL, "wall", wm, _box((x0, -T, 0), (x1, 0, H))),
+                      StaticPart(f"wall_{name}_n", StructureKind.WALL, "wall", wm, _box((x0, W, 0), (x1, W + T, H)))]
+        ends = [((-T, 0, 0), (0, W, H), west or WALLS), ((L, 0, 0), (L + T, W, H), east or WALLS)]
+        parts += [StaticPart(f"wall_{k}", StructureKind.WALL, "wall", m, _box(lo, hi))
+                  for k, (lo, hi, m) in enumerate(ends + walls[4:])]
     objects = []
     if door != "sealed":
         leaf = _box((0.0, -0.02, 0.0), (DOOR_WIDTH, 0.02, DOOR_HEIGHT - 0.01))
         objects.append(Door("door", "door", DOOR, leaf, movable=False, hinge=(xm, y0), closed_yaw=90.0, swing=-1,
                             open_fraction=1.0 if door == "open" else 0.0, rooms=("west", "east"), width=DOOR_WIDTH))
-    return Scene(f"two rooms ({door})", _shell(L, W, H, walls), objects, rooms,
-                 spec=f"builtin:two-rooms?door={door}", mapping_name="explicit")
+    spec = f"builtin:two-rooms?door={door}" + "".join(f"&{k}={v}" for k, v in (("west", west), ("east", east)) if v)
+    return Scene(f"two rooms ({door})", parts, objects, rooms, spec=spec, mapping_name="explicit")

@@ -63,8 +63,9 @@ def load_scene(spec: str = DEFAULT_SCENE) -> Scene:
 
         params.pop("mapping", None)
         door = params.pop("door", "open") if head == "builtin:two-rooms" else None
+        surfaces = {k: params.pop(k) for k in ("west", "east") if k in params} if door is not None else {}
         _unused(spec, params)
-        return reference.l_room() if door is None else reference.two_rooms(door)
+        return reference.l_room() if door is None else reference.two_rooms(door, **surfaces)
     if head.startswith("shoebox:"):
         from sonicverse_core.scene.shoebox import make_shoebox
 

@@ -1,0 +1,142 @@
+"""Rooms with decays of their own, coupled (``BakeConfig(per_room=True)``, ``coupling.RoomCoupling.late_split``):
+each room bakes its own decay, and the rooms' statistical energy balance in time gives a dead room beside a live one
+its double slope, two like rooms their joint ring, and a bathroom a shorter reverb than the living room."""
+import numpy as np
+import pytest
+
+from app.bench.fidelity import room_parameters
+from sonicverse_core.acoustics.coupling import RoomCoupling
+from sonicverse_core.acoustics.paths import path_graph
+from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
+from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+from sonicverse_core.scene.spec import load_scene
+
+FS = 16_000
+DEAD = "builtin:two-rooms?door=open&west=AcousticCeilingTiles"
+KHZ = 2  # 1 kHz in room_parameters' bands (250 Hz - 4 kHz)
+
+
+def _ir(spec, src, lis, per_room, seconds=2.5):
+    scene = load_scene(spec)
+    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono"),
+                         probes=scene_probes(scene, BakeConfig(per_room=per_room)))
+    x = np.zeros(int(seconds * FS), np.float32)
+    x[0] = 1.0
+    r.add_source(x, position=src, loop=False)
+    r.add_listener(lis)
+    return room_parameters(r.render(seconds)[0].astype(float).sum(0) / np.sqrt(2)), r
+
+
+def test_per_room_bakes_give_each_room_its_own_decay():
+    """A probe baked over the whole connected space hears the whole apartment (its rooms' RT60s within a few per
+    cent of each other); baked per room, the bathroom and the kitchen decay faster than the living room."""
+    scene = load_scene("builtin:apartment")
+    for per_room, spread in ((False, lambda r: r < 0.1), (True, lambda r: r > 0.25)):
+        probes = scene_probes(scene, BakeConfig(per_room=per_room))
+        rt = {scene.room_at(p.position[:2]).type: p.rt60[5] for p in probes}
+        assert spread(max(rt.values()) / min(rt.values()) - 1), (per_room, rt)
+        if per_room:
+            assert rt["bathroom"] < 0.8 * rt["living room"] and rt["kitchen"] < 0.8 * rt["living room"]
+            assert all(p.room == scene.room_at(p.position[:2]).name for p in probes)
+
+
+def test_a_dead_room_beside_a_live_one_decays_with_two_slopes():
+    """Source and listener in the dead room: its own decay first (EDT about a tenth of a second), then the live
+    room's energy leaking back through the door (T30 several times longer). Baked over the whole space, the dead
+    room instead rings with the live room's decay from the start, 14 dB too loud (``bench fidelity``'s dead-room
+    cases: pyroomacoustics' EDT there is 0.07-0.15 s)."""
+    src, lis = (1.2, 1.2, 1.5), (2.8, 3.0, 1.5)
+    p, r = _ir(DEAD, src, lis, per_room=True)
+    assert "coupled_rooms" in r.subsystems and r.stats["room_reverbs"] >= 2
+    assert p["EDT"][KHZ] < 0.2 and p["T30"][KHZ] > 2.5 * p["EDT"][KHZ], p
+    q, _ = _ir(DEAD, src, lis, per_room=False)
+    assert q["EDT"][KHZ] > 0.8 and q["T30"][KHZ] < 1.3 * q["EDT"][KHZ], q  # one slope: the live room's
+    assert q["G"][KHZ] > p["G"][KHZ] + 10
+
+
+def test_the_live_rooms_decay_reaches_the_dead_room():
+    """Listener in the dead room, source in the live one: what it hears decays as the live room does."""
+    scene = load_scene(DEAD)
+    c = RoomCoupling(scene, path_graph(scene), scene_probes(scene, BakeConfig(per_room=True)))
+    split = c.late_split()
+    east = c.index["east"]
+    assert split["slow_room"] == east
+    p, _ = _ir(DEAD, (6.0, 1.0, 1.5), (1.0, 0.6, 1.5), per_room=True)
+    assert p["T30"][KHZ] == pytest.approx(split["slow_rt"][5], rel=0.2)
+    assert p["T30"][KHZ] > 5 * split["own_rt"][c.index["west"], 5]
+
+
+def test_two_like_rooms_ring_together_as_the_whole_space_does():
+    """Two like rooms joined by an open door: baked per room each decays with its doorway absorbing; coupled, the
+    pair's slowest mode is the whole space's decay (the bake over both rooms), and a listener in the second room
+    hears it (T30 within 10%); the energy balance keeps the shut-door decay as the upper bound."""
+    scene = load_scene("builtin:two-rooms?door=open")
+    whole = scene_probes(scene, BakeConfig())[0].rt60[5]
+    probes = scene_probes(scene, BakeConfig(per_room=True))
+    own = probes[0].rt60[5]
+    assert own < 0.8 * whole
+    c = RoomCoupling(scene, path_graph(scene), probes)
+    split = c.late_split()
+    assert split["slow_rt"][5] == pytest.approx(whole, rel=0.1)
+    shut = 0.161 * c.V[0] / c.A[0, 5]
+    assert split["slow_rt"][5] <= shut * 1.001
+    p, _ = _ir("builtin:two-rooms?door=open", (2.0, 2.6, 1.5), (6.0, 0.6, 1.5), per_room=True)
+    assert p["T30"][KHZ] == pytest.approx(whole, rel=0.1)
+
+
+def test_closing_the_door_separates_the_modes():
+    """Door shut: each room decays as itself with its doorway shut (own RT = the shut-door RT), and little of a
+    source's energy reaches the other room (more than 15 dB less than with the door open, at 1 kHz)."""
+    scene = load_scene("builtin:two-rooms?door=open")
+    c = RoomCoupling(scene, path_graph(scene), scene_probes(scene, BakeConfig(per_room=True)))
+    open_ = c.late_split()
+    scene.set_door(scene.doors[0].name, 0.0)
+    c.graph.refresh()
+    shut = c.late_split()
+    assert shut is not open_
+    assert shut["own_rt"][0, 5] == pytest.approx(0.161 * c.V[0] / c.A[0, 5], rel=0.05)
+    assert shut["open"][0] == pytest.approx(0.0) and open_["open"][0] == pytest.approx(1.0)
+    drop = 10 * np.log10(open_["energy"][0, 1, 5] / shut["energy"][0, 1, 5])
+    assert drop > 15, drop
+
+
+def test_per_room_bakes_are_cached_apart_and_default_renders_are_unchanged():
+    """per_room is part of the bake's cache key (the two bakes differ), and without it the renderer takes the
+    whole-space path (no slow-mode reverb)."""
+    scene = load_scene("builtin:two-rooms?door=open")
+    a = scene_probes(scene, BakeConfig())
+    b = scene_probes(scene, BakeConfig(per_room=True))
+    assert a[0].room is None and b[0].room == "west" and b[0].rt60[5] < a[0].rt60[5]
+    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS), probes=a)
+    r.add_listener((1.0, 1.0, 1.5))
+    assert not r._modal and "conv_slow" not in r._state[0]
+
+
+def test_two_rooms_surfaces_per_room_are_checked():
+    from sonicverse_core.errors import SceneSpecError
+
+    with pytest.raises(SceneSpecError, match="unknown west material"):
+        load_scene("builtin:two-rooms?west=Cardboard")
+    scene = load_scene(DEAD)
+    west = [p for p in scene.static if p.name.endswith("_west") or p.name == "wall_0"]
+    assert west and all(p.material == "AcousticCeilingTiles" for p in west)
+    assert load_scene(DEAD).static_hash() != load_scene("builtin:two-rooms?door=open").static_hash()
+
+
+def test_the_two_tails_add_in_energy():
+    """The own-room and slowest-mode tails are independent noise: in one of two sealed rooms (half the energy in each
+    mode) the late level is the energy balance's, within 1.5 dB of the whole-space model's at 500 Hz - 2 kHz (the
+    same tails summed in amplitude were 2.5-3 dB louder)."""
+    scene = load_scene("builtin:two-rooms?door=sealed")
+    g = []
+    for per_room in (False, True):
+        r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", early_reflections=False),
+                             probes=scene_probes(scene, BakeConfig(per_room=per_room)))
+        x = np.zeros(3 * FS, np.float32)
+        x[0] = 1.0
+        r.add_source(x, position=(2.0, 2.0, 1.5), loop=False)
+        r.add_listener((1.0, 1.0, 1.5))
+        h = r.render(3.0)[0].astype(float).sum(0) / np.sqrt(2)
+        h[:int(0.03 * FS)] = 0.0  # the late part
+        g.append(np.array(room_parameters(h)["G"]))
+    np.testing.assert_allclose(g[1][1:4], g[0][1:4], atol=1.5)
