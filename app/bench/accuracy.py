@@ -6,6 +6,8 @@ Knobs and references:
 * scattering model (stochastic vs vector-based): per-band RT60 (250 Hz-4 kHz) of a uniform plaster shoebox vs
   Eyring, and the rendered T30 under an absorbing ceiling vs pyroomacoustics (whose tracer scatters by vectors);
   time per probe.
+* late model (probes baked over the whole connected space vs per room, coupled): strength G against
+  pyroomacoustics in the dead-room and two-room cases of ``bench fidelity``; render time of 3 s.
 * probes per scene: RT60 interpolated at random listener points vs a probe baked at that very point; bake time.
 * HRTF interpolation and filter length: leave-one-out over measured KEMAR directions (interpolate a held-out
   direction from the others, log-spectral distance 200 Hz-16 kHz to the measurement); time per 64 lookups.
@@ -100,6 +102,26 @@ def _scattering(quick: bool):
     return {"knob": "scattering_model", "error_metric": "mean |RT60/Eyring - 1| over 250 Hz-4 kHz in a uniform "
             "8x6x3 m plaster shoebox; error_vs_pyroomacoustics: mean |T30/T30_peer - 1| rendered in the 12x9x4 m "
             "shoebox under an absorbing ceiling; time: one probe", "rows": rows}
+
+
+def _late_model(quick: bool):
+    from app.bench.fidelity import _cases, _ours, _pra_polygon, room_parameters
+
+    todo = [c for c in _cases() if c[0].startswith(("two rooms, open door, no", "dead room"))]
+    peers = [np.array(room_parameters(_pra_polygon(corners, H, *mats[:3], src, lis, 5000 if quick else 20_000,
+                                                   floors=mats[3] if len(mats) > 3 else None))["G"])
+             for _, _, corners, H, mats, src, lis, _ in todo]
+    rows = []
+    for per_room in (False, True):
+        err, t = [], 0.0
+        for (_, spec, _, _, _, src, lis, _), peer in zip(todo, peers):
+            h, _, t_render = _ours(spec, src, lis, 3.0, per_room=per_room)
+            err.append(np.abs(np.array(room_parameters(h)["G"]) - peer))
+            t += t_render
+        rows.append({"setting": "per room" if per_room else "whole space", "error": float(np.mean(err)),
+                     "time_s": t / len(todo), "error_per_case_db": [round(float(e.mean()), 2) for e in err]})
+    return {"knob": "late_model", "error_metric": "mean |G - G_peer| (dB, 250 Hz-4 kHz) over bench fidelity's "
+            + ", ".join(c[0] for c in todo) + "; time: rendering 3 s at 16 kHz", "rows": rows}
 
 
 def _probes(quick: bool):
@@ -320,6 +342,7 @@ def bench_accuracy(reference_rays: int = 1_000_000, quick: bool = False, plot: s
     from sonicverse_core.progress import progress
 
     steps = [lambda: _rays_and_bounces(reference_rays, quick), lambda: [_scattering(quick)],
+             lambda: [_late_model(quick)],
              lambda: [_probes(quick)], lambda: [_hrtf(quick)],
              lambda: [_early(quick)], lambda: [_reverb(quick)], lambda: [_blocks(quick)], lambda: [_path_cell(quick)]]
     knobs = [k for step in progress(steps, desc="accuracy knobs") for k in step()]

@@ -29,7 +29,11 @@ listeners are added):
   inverse-distance weights. Sources in other rooms send through the rooms' coupling (``coupling.py``: a per-band
   energy balance through doors and walls), one send per room, filtered per band. Each source's send is delayed
   by its travel time plus the mixing time (sqrt(V) ms, Polack), so the tail starts after the direct sound and the
-  early reflections, and falls with distance (Barron).
+  early reflections, and falls with distance (Barron). With probes baked per room (``BakeConfig.per_room``) and
+  convolution, each send feeds two tails instead, on independent noise: the listener's room's own decay (its tails
+  with doors open and shut, blended as its doors are) and the coupled rooms' slowest mode, with the energies of the
+  rooms' energy balance in time (:meth:`RoomCoupling.late_split`): a dead room beside a live one decays with two
+  slopes.
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
