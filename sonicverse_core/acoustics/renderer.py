@@ -59,10 +59,10 @@ from sonicverse_core.acoustics.config import RenderConfig  # noqa: F401 - re-exp
 from sonicverse_core.acoustics.early import image_amplitudes, lattice, wall_reflectance
 from sonicverse_core.acoustics.kernels import (accumulate, accumulate_sh, add_tail, all_finite, crossfade_into,
                                                direct_geometry, distance_gains, encode_taps, farther, gather,
-                                               groups_sending, head_rotation, image_taps, late_groups, late_send, limit,
-                                               mix_ramped, mix_spectra, onset_delays, pan_spectra, read_sources, rows_moved, scale_into,
-                                               woodworth_delays,
-                                               shift_left, smooth_toward)
+                                               head_rotation, image_taps, limit, mix_spectra, onset_delays,
+                                               pan_spectra, read_sources, scale_into, woodworth_delays, shift_left,
+                                               smooth_toward)
+from sonicverse_core.acoustics.late import MAX_MIXING_TIME, SLOW_SEED, LateReverb
 from sonicverse_core.acoustics.occlusion import Occlusion, may_occlude
 
 from sonicverse_core.acoustics.probes import AIR_ABSORPTION, SPEED_OF_SOUND
@@ -70,10 +70,7 @@ from sonicverse_core.acoustics.sources import Listener, Source, grown as _grown
 from sonicverse_core.errors import ConfigError, PoseError
 from sonicverse_core.scene.materials import BANDS
 
-MID = slice(4, 7)  # 500 Hz - 2 kHz
 HEAD_RADIUS = 0.0875  # m: the stereo panner's head (Woodworth's ITD)
-MAX_MIXING_TIME = 0.08  # s: the late tail starts at most this long after the direct sound
-SLOW_SEED = 1000  # the slowest coupled mode's tails: noise independent of the rooms' own
 
 
 @lru_cache(maxsize=8)
@@ -101,7 +98,7 @@ def distance_gain(d, cfg: RenderConfig) -> np.ndarray:
     return out.reshape(d.shape)
 
 
-class AcousticRenderer:
+class AcousticRenderer(LateReverb):
     def __init__(self, scene=None, config: RenderConfig = RenderConfig(), probes=None, hrtf=None):
         self.cfg = cfg = config
         self.scene = scene
@@ -610,157 +607,6 @@ class AcousticRenderer:
         accumulate_sh(st["er_A"], self._er_filters, st["er_acc"])
         st["er_ifft"].run()
         add_tail(st["er_y"], 1.0 / self.er_nfft, out)
-
-    def _late(self, st, lis, dist, occ, out) -> None:
-        """The late reverb of every source, added into ``out``."""
-        cfg, n, B = self.cfg, self._n, self.cfg.block
-        key = st.get("late_key")
-        if key is None or farther(key, lis.position, 0.01):  # probe interpolation, per centimetre moved
-            w = 1 / np.maximum(np.linalg.norm(self._probe_pos - lis.position, axis=1), 0.1) ** 2
-            if self.coupling is not None:  # the listener's own room's probes (its neighbours come by coupling)
-                st["lis_room"] = int(self.coupling.room_of(lis.position[None, :2])[0])
-                if st["lis_room"] >= 0:
-                    if getattr(self, "_probe_room", None) is None:
-                        self._probe_room = self.coupling.room_of(self._probe_pos[:, :2])
-                    mine = self._probe_room == st["lis_room"]
-                    if mine.any():
-                        w = np.where(mine, w, 0.0)
-            if len(w) > 2:  # the two nearest probes: each one mixed in costs a convolution per block
-                w[np.argsort(w)[:-2]] = 0.0
-            w /= w.sum()
-            rt = w @ self._probe_rt
-            vol = float(w @ self._probe_vol)
-            if self.coupling is not None and st["lis_room"] >= 0 and self.coupling.rooms[st["lis_room"]].volume > 1:
-                vol = self.coupling.rooms[st["lis_room"]].volume  # the room's own (a proxy box sees through doors)
-            lo, hi = float(np.mean(rt[3:6])), float(rt[7])  # 250 Hz-1 kHz and 4 kHz: the FDN's two fit points
-            # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
-            level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
-            t_mix = float(np.clip(np.sqrt(max(vol, 0.0)) / 1000.0, 0.005, MAX_MIXING_TIME))  # Polack: sqrt(V) ms
-            st["late_key"], st["late_params"] = lis.position.copy(), (w, lo, hi, level, t_mix)
-            st["room_reverbs"] = int(np.count_nonzero(w > 1e-4))  # tails convolved for this listener
-            st["late_gen"] = st.get("late_gen", 0) + 1  # the listener moved: the modal mix is made again
-        w, lo, hi, level, t_mix = st["late_params"]
-        if self._modal and st.get("lis_room", -1) >= 0:
-            self._late_modal(st, lis, dist, occ, w, lo, t_mix, out)
-            return
-        # Barron & Lee 1988: the late level falls with source distance; a source behind walls excites the
-        # coupled space: the send keeps the square root of the direct path's mid-band transmission
-        group, use_occ, shapes = self._late_groups(st, n)
-        self.stats["room_reverbs"] = st["room_reverbs"]
-        sends = st["sends"]
-        late_send(self._ring, (self.write - B) % self.hist, dist, occ, use_occ, group, lo, st["send"][:n],
-                  st["send_delay"][:n], st["fresh"][:n], sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
-        self.stats["rooms_sending"] = groups_sending(group, st["send"][:n], st["seen"])
-        lv0 = st["late_level"] if st["late_level"] is not None else level
-        st["late_level"] = level
-        if "fdn" in st:
-            old = st.get("fdn_rt")
-            if old is None or abs(old[0] - lo) > 0.002 * lo or abs(old[1] - hi) > 0.002 * hi:  # 0.2 %
-                st["fdn"].set_rt60(lo, hi)
-                st["fdn_rt"] = (lo, hi)
-            np.matmul(st["mid"], sends, out=st["mono"])  # the groups' mid-band couplings
-            add = st["fdn"].process(st["mono"], out=st["fdn_out"])
-            mix_ramped(add, 1.0, 1.0, lv0, level, 1.0, out)
-            return
-        if len(w) < len(self._tail_rt):  # the shut-door tails play no part outside the rooms
-            w = np.r_[w, np.zeros(len(self._tail_rt) - len(w))]
-            st["late_params"] = (w, lo, hi, level, t_mix)
-        st["conv"].process(sends, w, shapes, out=out, level=(lv0, level), shapes_key=st["shapes_key"])
-
-    def _late_modal(self, st, lis, dist, occ, w, lo, t_mix, out) -> None:
-        """The late reverb of coupled rooms (``coupling.late_split``): each source room's send, shaped per band,
-        feeds the listener's own room's decay (its probes' tails, blended between doors open and shut as the room's
-        decay with its doors as they are) and the slowest mode's (the tails of the room it rings in); the energies
-        are the rooms' statistical energy balance, no Sabine level."""
-        n, B = self._n, self.cfg.block
-        c, lr = self.coupling, st["lis_room"]
-        group, use_occ, _ = self._late_groups(st, n)
-        split = c.late_split()
-        key = (split["gen"], st["late_gen"])
-        if st.get("modal_key") != key:
-            st["modal_w"], st["modal_shapes"] = self._modal_mix(st, lis, w, split, lr)
-            st["modal_key"] = key
-            st["room_reverbs"] = int(np.count_nonzero(st["modal_w"][0] > 1e-4) +
-                                     np.count_nonzero(st["modal_w"][1] > 1e-4))
-        self.stats["room_reverbs"] = st["room_reverbs"]
-        sends = st["sends"]
-        late_send(self._ring, (self.write - B) % self.hist, dist, occ, use_occ, group, lo, st["send"][:n],
-                  st["send_delay"][:n], st["fresh"][:n], sends, float(self.cfg.sample_rate), SPEED_OF_SOUND, t_mix)
-        self.stats["rooms_sending"] = groups_sending(group, st["send"][:n], st["seen"])
-        (w_own, w_slow), (sh_own, sh_slow) = st["modal_w"], st["modal_shapes"]
-        st["conv"].process(sends, w_own, sh_own, out=out, shapes_key=key)
-        st["conv_slow"].process(sends, w_slow, sh_slow, out=out, shapes_key=key)
-
-    def _modal_mix(self, st, lis, w, split, lr):
-        """Tail weights (own, slow) over ``self._tail_rt`` and per-group per-band amplitudes (own, slow) (G, 9)."""
-        P = len(self.probes)
-        rt = self._tail_rt
-
-        def blend(room, rt_now, weights):
-            """Amplitude weights over the tails for ``room``'s probes (energy ``weights``), blended between doors
-            open and shut so that the mid-band RT is ``rt_now``; and the blend's energy per band re the tails'
-            normalisation (each tail carries rt_b / rt_mid of a flat one)."""
-            mine = np.flatnonzero(self._probe_room == room)
-            if len(mine) == 0:
-                mine = np.array([int(np.argmax(weights))])
-            p = weights[mine] if weights[mine].sum() > 0 else np.ones(len(mine))
-            p = p / p.sum()
-            shut = self._shut[mine]
-            o, s_ = rt[mine].T @ p, rt[shut].T @ p  # (9,) room-mean open and shut RTs
-            span = s_[MID].mean() - o[MID].mean()  # a room without openings: no shut-door tail of its own
-            beta = float(np.clip((rt_now[MID].mean() - o[MID].mean()) / span, 0.0, 1.0)) \
-                if span > 0.01 * o[MID].mean() else 0.0
-            out = np.zeros(len(rt))
-            out[mine] = np.sqrt(p * (1 - beta))
-            out[shut] += np.sqrt(p * beta)
-            e = (1 - beta) * o / o[MID].mean() + beta * s_ / s_[MID].mean()
-            return out, e
-
-        d2 = np.sum((self._probe_pos - lis.position) ** 2, axis=1)
-        near = 1 / np.maximum(d2, 0.01)
-        w_own, e_own = blend(lr, split["own_rt"][lr], np.asarray(w[:P], float) ** 2)
-        w_slow, e_slow = blend(split["slow_room"], split["slow_rt"], near)
-        E, f = split["energy"][:, lr], split["slow"][:, lr]  # (R_s, 9)
-        own = np.sqrt(np.maximum(E * (1 - f), 0.0) / np.maximum(e_own, 1e-9))
-        slow = np.sqrt(np.maximum(E * f, 0.0) / np.maximum(e_slow, 1e-9))
-        sh_own, sh_slow = np.empty((self._groups, len(BANDS))), np.empty((self._groups, len(BANDS)))
-        sh_own[0], sh_own[1:] = own[lr], own
-        sh_slow[0], sh_slow[1:] = slow[lr], slow
-        return (w_own, w_slow), (sh_own, sh_slow)
-
-    def _late_groups(self, st, n: int):
-        """Per source, which send it joins (0: the listener's room, or rooms unknown; 1 + r: room r, filtered by
-        its coupling to the listener's room) and whether its send falls with the direct path's transmission (rooms
-        unknown); the groups' per-band amplitudes (G, 9), rewritten (and ``st["shapes_key"]`` changed) only when
-        the listener's room or the coupling changes."""
-        group, use_occ = st["group"][:n], st["use_occ"][:n]
-        lr = st.get("lis_room", -1)
-        if self.coupling is None or lr < 0:
-            group.fill(0)
-            use_occ.fill(True)
-            if st["shapes_key"] != -1:
-                st["shapes"][:] = 1.0
-                st["shapes_key"] = -1
-                if "mid" in st:
-                    st["mid"][:] = 1.0
-            return group, use_occ, st["shapes"]
-        c, pos = self.coupling, self._pos[:n]
-        moved = st["group_moved"] if "group_moved" in st and len(st["group_moved"]) >= n else None
-        if moved is None:
-            moved = st["group_moved"] = np.zeros(self._cap, bool)
-        if rows_moved(self._src_room_at[:n], pos, 0.05, moved[:n]):
-            idx = np.flatnonzero(moved[:n])
-            self._src_room[idx] = c.room_of(pos[idx, :2])
-            self._src_room_at[idx] = pos[idx]
-        late_groups(self._src_room[:n], lr, group, use_occ)
-        key = (c.scene.dynamic_version, lr)  # the transfer changes with the doors only
-        if st["shapes_key"] != key:
-            st["shapes"][1:] = c.transfer()[:, lr]  # the reverb transforms only the groups with sound
-            st["shapes"][0] = 1.0
-            st["shapes_key"] = key
-            if "mid" in st:
-                st["mid"][:] = st["shapes"][:, MID].mean(1)
-        return group, use_occ, st["shapes"]
 
     def _recover(self, st: dict) -> None:
         """A listener's block came out non-finite: clear every state that carries it into later blocks (filter
