@@ -75,7 +75,7 @@ class RoomCoupling:
                 self.A[k] = np.maximum(self.A[k] - self.S_open[k], 0.1 * self.A[k])
         self._cache: dict = {}
         self._split: dict = {}
-        self._version = None
+        self._version = self._split_version = None
 
     def _slice_coupling(self) -> None:
         g, R = self.graph, len(self.rooms)
@@ -185,7 +185,10 @@ class RoomCoupling:
         * ``slow_rt`` (9,): that mode's RT60 (s), and ``slow_room``: the room it rings in most (at 1 kHz);
         * ``own_rt`` (R, 9): each room's decay alone with its doorways as they are now (open ones absorb);
         * ``open`` (R,): :meth:`open_share`; ``gen``: a number no other split in this process has."""
-        key = (self.scene.dynamic_version, tuple(np.round(self.graph.apertures(), 4)))
+        if self._split and self._split_version == self.scene.dynamic_version:  # per block: no door moved
+            return next(iter(self._split.values()))
+        self._split_version = self.scene.dynamic_version
+        key = tuple(np.round(self.graph.apertures(), 4))
         if key in self._split:
             return self._split[key]
         R, nb = len(self.rooms), len(BANDS)
@@ -242,6 +245,7 @@ def room_coupling(scene, graph, probes) -> RoomCoupling:
             _CACHE.pop(next(iter(_CACHE)))
     if c.scene is not scene or c.graph is not graph:
         c = copy.copy(c)
-        c.scene, c.graph, c._cache, c._rc, c._version, c._split = scene, graph, {}, None, None, {}
+        c.scene, c.graph, c._cache, c._rc = scene, graph, {}, None
+        c._version, c._split, c._split_version = None, {}, None
         c.rooms = list(scene.rooms)  # the same rooms (the key), this scene's objects
     return c

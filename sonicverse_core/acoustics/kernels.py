@@ -687,3 +687,21 @@ def fdl_fill(X, curves, live, shaped, out):
         else:
             for f in range(X.shape[1]):
                 out[f] += X[g, f]
+
+
+@njit(**_opts)
+def portal_curve(ratio, beta, bins, out):
+    """Per-ear gains over FFT bins for a tail part of which ``beta`` arrives from one direction: out[e, f] =
+    sum_b bins[b, f] sqrt(beta ratio[e, b]^2 + 1 - beta) (ratio (2, B): that direction's per-band ear gains over
+    the diffuse field's, normalised so that the two ears' mean power is 1; bins (B, F) the bands' interpolation
+    weights). The mean power of the two ears stays 1 in every band: a direction, no change of level."""
+    E, F = out.shape
+    nb = ratio.shape[1]
+    for e in range(E):
+        for f in range(F):
+            g = 0.0
+            for b in range(nb):
+                w = bins[b, f]
+                if w != 0.0:
+                    g += w * np.sqrt(beta * ratio[e, b] * ratio[e, b] + 1.0 - beta)
+            out[e, f] = g

@@ -4,15 +4,19 @@ probes' tails around the listener, the rooms' coupling per band, and with probes
 tails (the listener's room's own decay and the slowest mode's)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from sonicverse_core.acoustics.kernels import farther, groups_sending, late_groups, late_send, mix_ramped, rows_moved
+from sonicverse_core.acoustics.kernels import (farther, groups_sending, late_groups, late_send, mix_ramped,
+                                               portal_curve, rows_moved)
 from sonicverse_core.acoustics.probes import SPEED_OF_SOUND
 from sonicverse_core.scene.materials import BANDS
 
 MID = slice(4, 7)  # 500 Hz - 2 kHz
 MAX_MIXING_TIME = 0.08  # s: the late tail starts at most this long after the direct sound
 SLOW_SEED = 1000  # the slowest coupled mode's tails: noise independent of the rooms' own
+PORTAL_STEP = 5.0  # degrees: the azimuth table of the neighbouring room's direction
 
 
 class LateReverb:
@@ -96,7 +100,74 @@ class LateReverb:
         self.stats["rooms_sending"] = groups_sending(group, st["send"][:n], st["seen"])
         (w_own, w_slow), (sh_own, sh_slow) = st["modal_w"], st["modal_shapes"]
         st["conv"].process(sends, w_own, sh_own, out=out, shapes_key=key)
-        st["conv_slow"].process(sends, w_slow, sh_slow, out=out, shapes_key=key)
+        st["conv_slow"].process(sends, w_slow, sh_slow, out=out, shapes_key=key, ears=self._portal_ears(st, lis))
+
+    def _portal_ears(self, st, lis):
+        """The slow tail's per-ear gains when it rings in another room: the level differences of the direction it
+        enters from (the doorway, ``_modal_mix``), for the head as it is turned now (a table row per 5 degrees of
+        azimuth; the gains are made again only when the row changes: nothing allocated while the head turns)."""
+        portal = st["portal"]
+        if portal is None:
+            return None
+        (px, py), beta = portal
+        p = lis.position
+        az = math.degrees(math.atan2(py - p[1], px - p[0])) - lis.yaw
+        idx = int(round(az / PORTAL_STEP)) % len(self._portal_table)
+        if idx != st["portal_idx"]:
+            portal_curve(self._portal_table[idx], beta, self._portal_bins, st["ears"])
+            st["portal_idx"] = idx
+        return st["ears"]
+
+    def _portal_tables(self):
+        """(A, 2, 9) per-band ear gains of azimuths k x 5 degrees in the horizontal plane over the diffuse field's,
+        normalised to a mean power of 1 over the two ears (binaural: the HRTF set; stereo: the constant-power
+        panner), and (9, block + 1) the bands' weights over the convolution's bins; None for mono output."""
+        if getattr(self, "_portal_table", None) is not None or self.cfg.output == "mono":
+            return
+        az = np.radians(np.arange(0.0, 360.0, PORTAL_STEP))
+        if self.hrtf is not None:
+            n = 1 << int(np.ceil(np.log2(max(4096, 2 * self.hrtf.taps))))
+            H, _ = self.hrtf.lookup_spectra(np.c_[np.cos(az), np.sin(az), np.zeros(len(az))], n)
+            f = np.fft.rfftfreq(n, 1 / self.cfg.sample_rate)
+            diffuse = self.hrtf.diffuse_field[0]
+            ratio = np.ones((len(az), 2, len(BANDS)))
+            for b, fc in enumerate(BANDS):
+                sel = (f >= fc / np.sqrt(2)) & (f < fc * np.sqrt(2))
+                if sel.any():
+                    ratio[:, :, b] = np.sqrt(np.mean(np.abs(H[:, :, sel]) ** 2, axis=2)) / diffuse[None, :, b]
+        else:  # the stereo panner: constant power by the lateral component (left ear towards +y)
+            s = np.sin(az)
+            ratio = np.repeat(np.stack([np.sqrt(1 + s), np.sqrt(np.maximum(1 - s, 0.0))], 1)[:, :, None],
+                              len(BANDS), axis=2)
+        ratio /= np.sqrt(np.mean(ratio ** 2, axis=1, keepdims=True))
+        self._portal_table = ratio
+        fb = np.fft.rfftfreq(2 * self.cfg.block, 1 / self.cfg.sample_rate)
+        lf = np.log2(np.maximum(fb, BANDS[0]))
+        self._portal_bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
+
+    def _portal(self, lis, split, lr):
+        """Where the slow mode's room is heard from when it is not the listener's: the last bend of the open path
+        from its probe (the doorway), the probe itself in sight or through a wall; and the share of that room's
+        energy arriving straight from there rather than diffused in the listener's room: x / (1 + x),
+        x = D / (4 pi r^2), D the listener's room's absorption plus its couplings at 1 kHz, r the distance (an
+        aperture of the coupling's area radiating the neighbour's diffuse field). None for the listener's own
+        room or mono output."""
+        room = split["slow_room"]
+        if room == lr or self.cfg.output == "mono":
+            return None
+        self._portal_tables()
+        c = self.coupling
+        mine = np.flatnonzero(self._probe_room == room)
+        if len(mine) == 0:
+            return None
+        xy = lis.position[:2]
+        src = self._probe_pos[mine[np.argmin(np.sum((self._probe_pos[mine, :2] - xy) ** 2, axis=1))], :2]
+        res = c.graph.path(src, xy)
+        pt = res.last if res is not None else src
+        r = max(float(np.hypot(*(pt - xy))), 0.5)
+        D = c.A[lr, 5] + c.coupling()[lr, :, 5].sum()
+        x = D / (4 * np.pi * r * r)
+        return (float(pt[0]), float(pt[1])), x / (1 + x)
 
     def _modal_mix(self, st, lis, w, split, lr):
         """Tail weights (own, slow) over ``self._tail_rt`` and per-group per-band amplitudes (own, slow) (G, 9)."""
@@ -133,6 +204,7 @@ class LateReverb:
         sh_own, sh_slow = np.empty((self._groups, len(BANDS))), np.empty((self._groups, len(BANDS)))
         sh_own[0], sh_own[1:] = own[lr], own
         sh_slow[0], sh_slow[1:] = slow[lr], slow
+        st["portal"], st["portal_idx"] = self._portal(lis, split, lr), -1
         return (w_own, w_slow), (sh_own, sh_slow)
 
     def _late_groups(self, st, n: int):

@@ -33,7 +33,8 @@ listeners are added):
   convolution, each send feeds two tails instead, on independent noise: the listener's room's own decay (its tails
   with doors open and shut, blended as its doors are) and the coupled rooms' slowest mode, with the energies of the
   rooms' energy balance in time (:meth:`RoomCoupling.late_split`): a dead room beside a live one decays with two
-  slopes.
+  slopes. A slowest mode ringing in another room is heard from its doorway, in part (the level differences of
+  that direction; ``late.LateReverb._portal``).
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
@@ -335,6 +336,8 @@ class AcousticRenderer(LateReverb):
                     # its own noise (tails of other seeds: the two add in energy, not in amplitude)
                     st["conv_slow"] = ConvolutionReverb(self.cfg.sample_rate, self.cfg.block, self._tail_rt,
                                                         seed=SLOW_SEED, groups=self._groups, **self._tail_colour())
+                    st["ears"] = np.ones((2, self.cfg.block + 1), np.complex64)  # the slow tail's direction
+                    st["portal"], st["portal_idx"] = None, -1
             st["late_level"] = None
             st["sends"] = np.zeros((self._groups, B), np.float32)
             st["seen"] = np.zeros(self._groups, bool)

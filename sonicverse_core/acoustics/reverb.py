@@ -200,12 +200,14 @@ class ConvolutionReverb:
             self._curves[:] = shapes @ bins
 
     def process(self, x: np.ndarray, weights: np.ndarray, shapes: np.ndarray | None = None,
-                out: np.ndarray | None = None, level: tuple = (1.0, 1.0), shapes_key=None) -> np.ndarray:
+                out: np.ndarray | None = None, level: tuple = (1.0, 1.0), shapes_key=None,
+                ears: np.ndarray | None = None) -> np.ndarray:
         """x (block,) mono send, or (G, block) sends each shaped by its row of ``shapes`` (G, 9) per-band amplitudes
         (the coupling of the room the group's sources are in); weights (n_probes,) summing to 1 -> (2, block)
         float64, added into ``out`` when given, scaled by the late level ramped from level[0] to level[1].
         ``shapes_key``: a value that changes whenever ``shapes`` does (the curves are rebuilt then; without a key,
-        every block). With ``out`` and a key, a block allocates nothing."""
+        every block). ``ears`` (2, block + 1): per-ear gains over the FFT's bins applied to the tail (smooth in
+        frequency: a direction's level differences). With ``out`` and a key, a block allocates nothing."""
         from sonicverse_core.acoustics.kernels import fdl_fill, fdl_mac, live_rows, mix_ramped, shift_left
 
         B, P = self.B, self.P
@@ -239,6 +241,8 @@ class ConvolutionReverb:
             if w0 <= 1e-4 and w1 <= 1e-4:
                 continue
             fdl_mac(self.fdl, self.H[k], off, self._Y)
+            if ears is not None:
+                np.multiply(self._Y, ears, out=self._Y)
             self._inv.run()
             mix_ramped(self._y, w0, w1, level[0], level[1], scale, out)
         self.w[:] = weights
