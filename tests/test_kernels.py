@@ -279,6 +279,20 @@ def test_fdl_mac():
     np.testing.assert_allclose(out, np.einsum("pf,pef->ef", fdl, H[3:3 + P]), rtol=1e-4, atol=1e-4)
 
 
+def test_portal_curve():
+    ratio = np.abs(RNG.normal(size=(2, 9))) + 0.1
+    ratio /= np.sqrt(np.mean(ratio ** 2, axis=0, keepdims=True))
+    bins = np.abs(RNG.normal(size=(9, 33)))
+    bins /= bins.sum(0, keepdims=True)
+    out = np.empty((2, 33), np.complex64)
+    for beta in (0.0, 0.3, 1.0):
+        K.portal_curve(ratio, beta, bins, out)
+        np.testing.assert_allclose(out.real, np.sqrt(beta * ratio ** 2 + 1 - beta) @ bins, rtol=1e-5)
+        assert np.all(out.imag == 0)
+    K.portal_curve(ratio, 0.0, bins, out)
+    np.testing.assert_allclose(out.real, 1.0, rtol=1e-5)  # all diffuse: no change
+
+
 def test_every_kernel_has_a_twin():
     """A kernel added without a twin fails here."""
     import inspect
