@@ -21,7 +21,7 @@ from collections import deque
 
 import numpy as np
 
-from agents.scripted import Agent, MapDriver, _pursue, _wheels
+from agents.scripted import Agent, MapDriver, _pursue, _wheels, next_waypoint
 
 
 class OracleFollower(Agent):
@@ -57,15 +57,14 @@ class OracleFollower(Agent):
             path, length = w.grid.shortest_path(p, person.pos)
             self.path = path if np.isfinite(length) and len(path) > 1 else np.array([p, person.pos])
             self.k, self.plan_at = 1, 5
-        while (self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2
-               and w.grid.line_of_sight(p, self.path[self.k + 1])):
-            self.k += 1
+        self.k = next_waypoint(w.grid, self.path, self.k, p)
         return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt))
 
 
     def _yield_spot(self, w, person) -> np.ndarray | None:
         """Where to stand when the person's next 4 m pass within 0.9 m of the robot: the nearest free place
-        (within 2.5 m) at least 1.1 m from that stretch and 1-2.2 m from the person; None when not in the way."""
+        (within 2.5 m) at least 1.1 m from that stretch and 1-2.2 m from the person along the floor; None when not
+        in the way."""
         ahead = person.upcoming(4.0)
         p = w.pose[:2]
         if len(ahead) < 2 or np.min(np.linalg.norm(ahead[1:] - p, axis=1)) >= 0.9:
@@ -81,7 +80,10 @@ class OracleFollower(Agent):
             return None
         xy = g.center_of(cells)
         far = np.min(np.linalg.norm(xy[:, None] - ahead[None, 1:], axis=2), axis=1)
-        dp = np.linalg.norm(xy - person.pos, axis=1)
+        key = tuple(g.cell_of(person.pos)[0])
+        if getattr(self, "_field_key", None) != key:  # the person's geodesic field, per cell they stand in
+            self._field, self._field_key = g.distance_field(person.pos), key
+        dp = g.geodesic_from_field(self._field, xy)  # along the floor: a spot round a corner is farther
         ok = (far >= 1.1) & (dp >= 1.0) & (dp <= 2.2) & (np.linalg.norm(xy - p, axis=1) <= 2.5)
         if not np.any(ok):
             return None

@@ -43,6 +43,19 @@ def _pursue(pose_xy, yaw_deg, target, robot, dt, slow_within: float = 0.0) -> np
     return _wheels(v, w, robot)
 
 
+def next_waypoint(grid, path: np.ndarray, k: int, p: np.ndarray) -> int:
+    """The waypoint of ``path`` to steer for from ``p``, at or after ``k``: past those within 0.2 m whose next one is
+    in line of sight, and always past one within 5 cm (it gives no heading: steering for it, a robot spins on the
+    spot)."""
+    while k < len(path) - 1:
+        d = float(np.hypot(*(path[k] - p)))
+        if d < 0.05 or (d < 0.2 and grid.line_of_sight(p, path[k + 1])):
+            k += 1
+        else:
+            break
+    return k
+
+
 class Agent:
     name = "agent"
     stop_dim = False
@@ -123,9 +136,7 @@ class MapDriver(Agent):
             path, length = w.grid.shortest_path(p, goal)
             self.path = path if np.isfinite(length) and len(path) > 1 else np.array([p, goal])
             self.k, self.goal = 1, np.array(goal, float)
-        while (self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2
-               and w.grid.line_of_sight(p, self.path[self.k + 1])):
-            self.k += 1
+        self.k = next_waypoint(w.grid, self.path, self.k, p)
         return _pursue(p, w.pose[2], self.path[min(self.k, len(self.path) - 1)], self.robot, self.dt,
                        slow_within=slow)
 

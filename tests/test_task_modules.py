@@ -104,6 +104,53 @@ def test_person_walks_navigable_paths_at_its_speed_pauses_and_stops():
     assert abs(p.mouth[2] - (w.base.z_floor + 1.58)) < 1e-9
 
 
+def test_a_guide_keeps_a_robots_pace_and_waits_only_outside_the_band():
+    """A robot close behind: the person's own speed; more than pace_gap behind: pace_speed; more than escort_gap
+    behind (past the band's 2.5 m): they stand until it is within escort_resume, at most max_wait_s."""
+    from sonicverse_core.tasks.following import BAND
+    from sonicverse_core.world.person import Person, PersonConfig
+
+    w = _world()
+    rng = np.random.default_rng(3)
+    route = w.grid.sample(rng, 2)
+    cfg = PersonConfig(turn_deg_s=1e6)
+    assert cfg.escort_gap > BAND[1] and cfg.pace_speed < w.robot.max_speed
+    p = Person(w, route, cfg, speed=1.2)
+
+    def step(gap):
+        before = p.walked
+        p.advance(0.1, robot_gap=gap)
+        return (p.walked - before) / 0.1
+
+    p.advance(0.3)  # past the first turn
+    assert step(1.0) == pytest.approx(1.2)
+    assert step(cfg.pace_gap + 0.1) == pytest.approx(cfg.pace_speed)
+    assert step(cfg.escort_gap + 0.1) == 0.0 and p.escorting
+    assert step(2.2) == 0.0  # waiting goes on until the robot is back within escort_resume
+    assert step(cfg.escort_resume - 0.1) == pytest.approx(cfg.pace_speed) and not p.escorting  # walks on, slowly
+    waited = 0
+    while step(10.0) == 0.0:  # a robot that does not come: the wait ends after max_wait_s
+        waited += 1
+    assert waited * 0.1 == pytest.approx(cfg.max_wait_s, abs=0.11)
+    with pytest.raises(ConfigError):
+        PersonConfig(escort_gap=1.0, escort_resume=1.5)
+
+
+def test_steering_skips_a_waypoint_under_the_robot():
+    """A path's waypoint within 5 cm of the robot gives no heading; steering for it the robot spun on the spot
+    (the oracle follower fell seconds behind). It is skipped even where the next one is out of line of sight."""
+    from agents.scripted import next_waypoint
+
+    class Blind:
+        def line_of_sight(self, a, b):
+            return False
+
+    path = np.array([[0.0, 0.0], [1.0, 0.02], [1.0, 1.0], [2.0, 1.0]])
+    assert next_waypoint(Blind(), path, 1, np.array([1.0, 0.0])) == 2
+    assert next_waypoint(Blind(), path, 1, np.array([0.9, 0.0])) == 1  # 10 cm: kept (it has a heading)
+    assert next_waypoint(Blind(), path, 3, np.array([2.0, 1.0])) == 3  # the last one stays
+
+
 def test_person_speech_alternates_talk_and_silence():
     from sonicverse_core.world.person import PersonConfig, speech_track
 

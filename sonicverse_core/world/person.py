@@ -6,10 +6,12 @@ Walking: the route is a list of places; between them the person follows the geod
 (string-pulled, through open doors) at a speed drawn per episode from :attr:`PersonConfig.speed` (indoor walking:
 1.0-1.4 m/s), turns on the spot when the next leg bends by more than 60 degrees (at ``turn_deg_s``), pauses at each
 intermediate place and stops for good at the last. A TurtleBot's top speed (0.7 m/s) is about half a walking pace,
-so a person who leads a robot waits for it, as a guide does: when the robot is more than ``escort_gap`` m behind
-(geodesic, as told by the task), the person stops until it is within ``escort_resume`` m, at most ``max_wait_s``
-at a time; after a wait that ran out it walks on for as long again before waiting again (a robot that is lost does
-not hold the person forever). The person
+so a person who leads a robot keeps to its pace, as a guide does: when the robot is more than ``pace_gap`` m behind
+(geodesic, as told by the task) the person slows to ``pace_speed`` (0.5 m/s: a robot that follows gains on them);
+when it is more than ``escort_gap`` m behind (past the following band's 2.5 m) they stop until it is within
+``escort_resume`` m, at most ``max_wait_s`` at a time; after a wait that ran out they walk on for as long again
+before waiting again (a robot that is lost does not hold the person forever). A robot that does not follow gains
+nothing from the waits: they begin outside the band. The person
 also waits (at most 1 s) rather than walk into the robot, then squeezes past (the robot may always move away from a body
 that came onto it).
 
@@ -46,8 +48,10 @@ class PersonConfig:
     phrase_gap_s: tuple = (0.2, 0.6)
     speech_peak: float = 0.5  # each utterance's peak (about 70 dB SPL at 1 m with the renderer's reference)
     directivity: float = 0.3  # gain (1 - a) + a cos(angle): -3 dB to the sides, -8 dB behind (broadband speech)
-    escort_gap: float = 2.2  # m: wait for a robot farther behind
-    escort_resume: float = 1.6  # m: walk on when it is this close
+    pace_gap: float = 1.6  # m: slow to ``pace_speed`` when the robot is farther behind
+    pace_speed: float = 0.5  # m/s: a pace a TurtleBot (0.7 m/s) gains on
+    escort_gap: float = 2.6  # m: wait for a robot farther behind (outside the following band)
+    escort_resume: float = 1.8  # m: walk on when it is this close
     max_wait_s: float = 3.0  # at a time
     voices: tuple = VOICES
 
@@ -61,6 +65,10 @@ class PersonConfig:
             lo, hi = getattr(self, name)
             if not (0 <= lo <= hi <= 600):
                 raise ConfigError(f"person {name} must be an ordered range of 0-600 s, got {(lo, hi)}")
+        if not (0 < self.pace_gap and 0 < self.pace_speed <= 3.0 and 0 < self.escort_resume <= self.escort_gap
+                and self.max_wait_s >= 0):
+            raise ConfigError("person needs pace_gap > 0, 0 < pace_speed <= 3 m/s, 0 < escort_resume <= escort_gap "
+                              "and max_wait_s >= 0")
         if not self.voices:
             raise ConfigError("person needs at least one voice")
 
@@ -283,7 +291,10 @@ class Person:
                 return
             if not (ahead and dist < self.cfg.radius + robot_radius + 0.15):
                 self.blocked_for = 0.0
-        step = self.speed * left
+        speed = self.speed
+        if robot_gap is not None and np.isfinite(robot_gap) and robot_gap > self.cfg.pace_gap:
+            speed = min(speed, self.cfg.pace_speed)  # the robot lags: walk at a pace it can keep
+        step = speed * left
         self._moving = step > 0
         while step > 0:
             seg = path[self.k] - self.pos
