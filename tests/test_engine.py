@@ -117,10 +117,10 @@ def test_occlusion_follows_a_closing_door_in_the_next_block():
     r.add_listener(lis)
     s.set_door(door.name, 1.0)
     r.render_block()
-    open_t = r._state[0]["occ_target"][0].copy()
+    open_t = r._state[0].occ_target[0].copy()
     s.set_door(door.name, 0.0)
     r.render_block()  # the very next block sees the change
-    closed_t = r._state[0]["occ_target"][0].copy()
+    closed_t = r._state[0].occ_target[0].copy()
     assert np.allclose(open_t, 1.0)  # open: a clear path
     assert closed_t[-1] < 0.1 and np.all(np.diff(closed_t) <= 1e-12)  # closed: the leaf, more at high bands
     y = r.render_block()[0]  # and the output follows, smoothed across blocks
@@ -145,6 +145,38 @@ def test_leave_out_what_a_scene_does_not_need():
     r.render_block()
     # a segment whose box meets no part's box casts no rays
     assert r.stats["occlusion_skipped"] + r.stats["occlusion_rays"] == 1
+
+
+def test_subsystems_share_one_protocol_and_keep_typed_per_listener_state():
+    """Every subsystem gives each listener a typed state (a misspelt field is an error), grows it with the
+    sources, and says how far back it reads; the history ring covers the farthest reader; a renderer without a
+    subsystem has no state for it."""
+    from sonicverse_core.acoustics.state import ListenerState, PerSource
+
+    box = load_scene("shoebox:5x4x3")
+    r = AcousticRenderer(box, RenderConfig(), probes=[_probe((5, 4, 3))])
+    assert [p.name for p in r.parts] == ["direct", "early", "late"]  # convex: no occlusion, no paths
+    for i in range(9):  # past the first capacity (8): every state grows
+        r.add_source(np.ones(FS, np.float32) * 0.01, (1.0 + 0.2 * i, 1.0, 1.5))
+    r.add_listener((4.0, 3.0, 1.5))
+    ls = r._state[0]
+    assert isinstance(ls, ListenerState) and ls.occlusion is None and ls.paths is None
+    for part, st in zip(r.parts, ls.parts):
+        assert isinstance(st, PerSource) and getattr(ls, part.name) is st
+        for name in ("state", "grow", "max_delay", "render", "reset"):
+            assert callable(getattr(part, name))
+        with pytest.raises(AttributeError):
+            st.no_such_field = 1.0
+    assert ls.direct.hist.shape[0] >= 9 and ls.early.delay.shape[0] >= 9 and ls.late.send.shape[0] >= 9
+    assert r.hist >= max(p.max_delay() for p in r.parts) * FS
+    assert r.late.max_delay() > r.direct.max_delay()  # the late send's pre-delay
+    y = r.render(0.1)[0]
+    assert np.all(np.isfinite(y)) and np.abs(y).max() > 0
+    apt = load_scene("builtin:apartment?seed=0")
+    r = AcousticRenderer(apt, RenderConfig(late_reverb=False, early_reflections=False))
+    assert [p.name for p in r.parts] == ["occlusion", "paths", "direct"]
+    r.add_listener((0, 0, 1.5))
+    assert r._state[0].late is None and r._state[0].occlusion is r._state[0].parts[0]
 
 
 def test_two_listeners_hear_the_scene_from_their_own_poses():
@@ -209,8 +241,8 @@ def test_long_run_no_memory_growth_no_denormals(reverb):
     tracemalloc.stop()
     assert after - before < 200_000, after - before
     assert np.all(y == 0) or np.min(np.abs(y[y != 0])) >= 1e-30
-    st = r._state[0]
-    state = (st["fdn"].buf, st["fdn"].zi) if reverb == "fdn" else (st["conv"].fdl, st["conv"]._frame)
+    late = r._state[0].late
+    state = (late.fdn.buf, late.fdn.zi) if reverb == "fdn" else (late.conv.fdl, late.conv._frame)
     for arr in state:
         tiny = np.finfo(arr.real.dtype).tiny
         nz = np.abs(arr[arr != 0])

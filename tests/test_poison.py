@@ -39,12 +39,12 @@ def test_poisoned_state_recovers_within_a_block_and_says_so(reverberant, reverb)
     r.add_source(np.random.default_rng(0).normal(size=48000).astype(np.float32) * 0.1, (1.5, 1.5, 1.5))
     r.add_listener((4.0, 3.0, 1.6))
     r.render(0.3)
-    st = r._state[0]
+    ls = r._state[0]
     if reverb == "fdn":
-        st["fdn"].buf[3] = np.nan  # NaN inside the feedback loop: before, silence for the rest of the run
+        ls.late.fdn.buf[3] = np.nan  # NaN inside the feedback loop: before, silence for the rest of the run
     else:
-        st["conv"].fdl[:, 5] = np.nan
-    st["hist"][0, 0, -1] = np.inf
+        ls.late.conv.fdl[:, 5] = np.nan
+    ls.direct.hist[0, 0, -1] = np.inf
     first = r.render_block()[0]
     assert np.all(np.isfinite(first)) and r.stats["recoveries"] == 1
     after = r.render(0.5)[0]

@@ -109,7 +109,7 @@ def test_per_room_bakes_are_cached_apart_and_default_renders_are_unchanged():
     assert a[0].room is None and b[0].room == "west" and b[0].rt60[5] < a[0].rt60[5]
     r = AcousticRenderer(scene, RenderConfig(sample_rate=FS), probes=a)
     r.add_listener((1.0, 1.0, 1.5))
-    assert not r._modal and "conv_slow" not in r._state[0]
+    assert not r.late.modal and r._state[0].late.conv_slow is None
 
 
 def test_two_rooms_surfaces_per_room_are_checked():
@@ -164,7 +164,7 @@ def test_the_live_rooms_tail_comes_from_the_doorway(output):
     20 degrees left of +x. Facing +y the doorway is to the right, facing -y to the left: the late part's level
     difference follows, by 2 dB or more, and the late energy does not change with the head (within 0.5 dB)."""
     ild_right, e_right, r = _late_ears(90.0, output)
-    (px, py), beta = r._state[0]["portal"]
+    (px, py), beta = r._state[0].late.portal
     assert px == pytest.approx(3.85, abs=0.15) and py == pytest.approx(1.65, abs=0.15) and 0.2 < beta < 0.9
     ild_left, e_left, _ = _late_ears(-90.0, output)
     assert ild_right < -2 and ild_left > 2, (ild_right, ild_left)
@@ -190,7 +190,7 @@ def test_per_room_late_reverb_allocates_nothing_while_the_head_turns():
                 for j in range(300):
                     r.set_listener(lis, pos, ((k + j) * 0.2133) % 360.0)
                     r.render_block(outs)
-                    turned.append(r._state[0]["portal_idx"])
+                    turned.append(r._state[0].late.portal_idx)
                 assert numpy_allocs() == 0, f"{numpy_allocs()} NumPy allocations in 300 blocks"
             break
         r.render_block(outs)

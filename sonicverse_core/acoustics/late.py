@@ -1,7 +1,7 @@
-"""The late reverb's per-block work, mixed into :class:`~sonicverse_core.acoustics.renderer.AcousticRenderer`
-(the renderer's module docstring says what it does): the sends of every source to the listener's reverb, the
-probes' tails around the listener, the rooms' coupling per band, and with probes baked per room the two coupled
-tails (the listener's room's own decay and the slowest mode's)."""
+"""The late reverb, a subsystem of :class:`~sonicverse_core.acoustics.renderer.AcousticRenderer` (the renderer's
+module docstring says what it does): the sends of every source to the listener's reverb, the probes' tails around
+the listener, the rooms' coupling per band, and with probes baked per room the two coupled tails (the listener's
+room's own decay and the slowest mode's)."""
 from __future__ import annotations
 
 import math
@@ -11,6 +11,8 @@ import numpy as np
 from sonicverse_core.acoustics.kernels import (farther, groups_sending, late_groups, late_send, mix_ramped,
                                                portal_curve, rows_moved)
 from sonicverse_core.acoustics.probes import SPEED_OF_SOUND
+from sonicverse_core.acoustics.sources import grown
+from sonicverse_core.acoustics.state import PerSource
 from sonicverse_core.scene.materials import BANDS
 
 MID = slice(4, 7)  # 500 Hz - 2 kHz
@@ -19,117 +21,236 @@ SLOW_SEED = 1000  # the slowest coupled mode's tails: noise independent of the r
 PORTAL_STEP = 5.0  # degrees: the azimuth table of the neighbouring room's direction
 
 
-class LateReverb:
-    """Methods of the renderer; they use its probes, coupling, source ring and per-listener state."""
+class LateState(PerSource):
+    """A listener's late reverb: per source its send's gain and delay (``send``, ``send_delay``: ramped from), the
+    send it joins (``group``: 0 the listener's room or rooms unknown, 1 + r room r) and whether its send falls with
+    the direct path's transmission (``use_occ``); per group the block's sends, which carry sound (``seen``) and their
+    per-band amplitudes (``shapes``, made for ``shapes_key``); the reverberator (``conv`` and, with rooms of their
+    own, ``conv_slow`` and its direction ``ears`` / ``portal``; or ``fdn``); the probes' mix for where the listener
+    stands (``params``, made at ``key``; its room ``lis_room``) and the level it was rendered at."""
 
-    def _late(self, st, lis, dist, occ, out) -> None:
+    __slots__ = ("send", "send_delay", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow", "ears", "portal",
+                 "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono", "fdn_out", "key",
+                 "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes", "fdn_rt")
+    ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("group", (), np.int64, 0),
+            ("use_occ", (), bool, True), ("group_moved", (), bool, False))
+
+    def __init__(self, cap: int, groups: int, block: int):
+        super().__init__(cap)
+        self.fdn = self.conv = self.conv_slow = self.ears = self.portal = None
+        self.mid = self.mono = self.fdn_out = self.fdn_rt = None
+        self.portal_idx = -1
+        self.level = None
+        self.sends = np.zeros((groups, block), np.float32)
+        self.seen = np.zeros(groups, bool)
+        self.shapes = np.ones((groups, len(BANDS)))
+        self.shapes_key = self.key = self.params = self.modal_key = self.modal_w = self.modal_shapes = None
+        self.lis_room, self.room_reverbs, self.gen = -1, 0, 0
+
+
+class LateReverb:
+    """The late-reverb subsystem of ``renderer`` (:mod:`sonicverse_core.acoustics.state`; the renderer's module
+    docstring says what it does). ``graph``: the scene's path graph, for the rooms' coupling (None: rooms unknown,
+    one send for every source)."""
+
+    name = "late"
+
+    def __init__(self, renderer, graph=None):
+        self.r = r = renderer
+        cfg, scene = r.cfg, r.scene
+        self.rt = np.array([p.rt60 for p in r.probes])
+        self.vol = np.array([p.volume for p in r.probes])
+        r.coupling, self.groups, self.modal = None, 1, False
+        if graph is not None and scene.rooms:  # each room excites its neighbours through doors and walls
+            from sonicverse_core.acoustics.coupling import room_coupling
+
+            r.coupling = room_coupling(scene, graph, r.probes)
+            self._src_room_at = np.full((0, 3), np.nan)
+            self._src_room = np.zeros(0, np.int64)
+            self._probe_room = r.coupling.room_of(r._probe_pos[:, :2])
+        # late sends: 0 the listener's room (or rooms unknown), 1 + r from room r
+        self.groups = len(r.coupling.rooms) + 1 if r.coupling is not None else 1
+        # the tails: each probe's as baked, and, with coupled rooms, each probe's room with its doorways shut
+        # (0.161 V / A_own): a room's decay with its doors as they are lies between the two
+        self.tail_rt = self.rt
+        self.modal = (r.coupling is not None and cfg.reverb == "convolution"
+                      and any(p.room is not None for p in r.probes))  # probes baked per room
+        if self.modal:
+            c = r.coupling
+            shut, self._shut = [], np.arange(len(r.probes))  # the tail index of each probe's shut-door decay
+            for k, room in enumerate(self._probe_room):
+                if room >= 0 and c.S_open[room] > 0:  # a room without openings has no shut-door tail of its own
+                    self._shut[k] = len(r.probes) + len(shut)
+                    shut.append(np.maximum(0.161 * c.V[room] / c.A[room], self.rt[k]))
+            self.tail_rt = np.vstack([self.rt] + shut)
+        self._colour = None
+        self._portal_table = None
+
+    # --- the subsystem protocol ----------------------------------------------------------------------------------
+    def state(self, cap: int) -> LateState:
+        cfg = self.r.cfg
+        st = LateState(cap, self.groups, cfg.block)
+        if cfg.reverb == "fdn":
+            from sonicverse_core.acoustics.reverb import FDNReverb
+
+            st.fdn = FDNReverb(cfg.sample_rate, cfg.block)
+            st.mid = np.ones(self.groups, np.float32)
+            st.mono = np.zeros(cfg.block, np.float32)
+            st.fdn_out = np.zeros((2, cfg.block))
+        else:
+            from sonicverse_core.acoustics.reverb import ConvolutionReverb
+
+            st.conv = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, groups=self.groups,
+                                        **self.tail_colour())
+            if self.modal:  # the coupled rooms' slowest mode: its own input (its shapes differ per group) and
+                # its own noise (tails of other seeds: the two add in energy, not in amplitude)
+                st.conv_slow = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=SLOW_SEED,
+                                                 groups=self.groups, **self.tail_colour())
+                st.ears = np.ones((2, cfg.block + 1), np.complex64)  # the slow tail's direction
+        return st
+
+    def grow(self, st: LateState | None, cap: int) -> None:
+        if st is not None:
+            st.grow(cap)
+        elif self.r.coupling is not None:  # the room each source is in, and where it was found
+            self._src_room_at = grown(self._src_room_at, (cap, 3), np.float64, np.nan)
+            self._src_room = grown(self._src_room, (cap,), np.int64, -1)
+
+    def max_delay(self) -> float:
+        return self.r.direct.max_delay() + MAX_MIXING_TIME  # the send's pre-delay
+
+    def reset(self, st: LateState) -> None:
+        for rev in (st.fdn, st.conv, st.conv_slow):
+            if rev is not None:
+                rev.reset()
+        st.level, st.key = None, None
+
+    def render(self, st: LateState, ls, lis, out) -> None:
         """The late reverb of every source, added into ``out``."""
-        cfg, n, B = self.cfg, self._n, self.cfg.block
-        key = st.get("late_key")
+        n = ls.n
+        self._late(st, lis, ls.direct.dist[:n], ls.occ[:n], ls.fresh[:n], out)
+
+    def tail_colour(self) -> dict:
+        """How the synthesised tails sound at the ears: binaural output takes the HRTF set's diffuse-field gains
+        and interaural coherence per band; mono output the same tail in both channels; stereo two independent
+        tails (both at the direct sound's sqrt(1/2) per channel). Computed once per renderer."""
+        if self._colour is None:
+            if self.r.hrtf is not None:
+                g, rho = self.r.hrtf.diffuse_field  # computed once per set (renderers share it)
+                self._colour = {"gains": g, "coherence": rho}
+            else:
+                # the direct sound is panned with sqrt(1/2) per channel (constant power): so is the tail
+                half = np.full((2, len(BANDS)), np.sqrt(0.5))
+                self._colour = {"gains": half,
+                                "coherence": np.ones(len(BANDS)) if self.r.cfg.output == "mono" else None}
+        return self._colour
+
+    def _late(self, st, lis, dist, occ, fresh, out) -> None:
+        """The late reverb of every source, added into ``out``."""
+        cfg, n, B = self.r.cfg, self.r._n, self.r.cfg.block
+        key = st.key
         if key is None or farther(key, lis.position, 0.01):  # probe interpolation, per centimetre moved
-            w = 1 / np.maximum(np.linalg.norm(self._probe_pos - lis.position, axis=1), 0.1) ** 2
-            if self.coupling is not None:  # the listener's own room's probes (its neighbours come by coupling)
-                st["lis_room"] = int(self.coupling.room_of(lis.position[None, :2])[0])
-                if st["lis_room"] >= 0:
-                    if getattr(self, "_probe_room", None) is None:
-                        self._probe_room = self.coupling.room_of(self._probe_pos[:, :2])
-                    mine = self._probe_room == st["lis_room"]
+            w = 1 / np.maximum(np.linalg.norm(self.r._probe_pos - lis.position, axis=1), 0.1) ** 2
+            if self.r.coupling is not None:  # the listener's own room's probes (its neighbours come by coupling)
+                st.lis_room = int(self.r.coupling.room_of(lis.position[None, :2])[0])
+                if st.lis_room >= 0:
+                    mine = self._probe_room == st.lis_room
                     if mine.any():
                         w = np.where(mine, w, 0.0)
             if len(w) > 2:  # the two nearest probes: each one mixed in costs a convolution per block
                 w[np.argsort(w)[:-2]] = 0.0
             w /= w.sum()
-            rt = w @ self._probe_rt
-            vol = float(w @ self._probe_vol)
-            if self.coupling is not None and st["lis_room"] >= 0 and self.coupling.rooms[st["lis_room"]].volume > 1:
-                vol = self.coupling.rooms[st["lis_room"]].volume  # the room's own (a proxy box sees through doors)
+            rt = w @ self.rt
+            vol = float(w @ self.vol)
+            if self.r.coupling is not None and st.lis_room >= 0 and self.r.coupling.rooms[st.lis_room].volume > 1:
+                vol = self.r.coupling.rooms[st.lis_room].volume  # the room's own (a proxy box sees through doors)
             lo, hi = float(np.mean(rt[3:6])), float(rt[7])  # 250 Hz-1 kHz and 4 kHz: the FDN's two fit points
             # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
             level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))
             t_mix = float(np.clip(np.sqrt(max(vol, 0.0)) / 1000.0, 0.005, MAX_MIXING_TIME))  # Polack: sqrt(V) ms
-            st["late_key"], st["late_params"] = lis.position.copy(), (w, lo, hi, level, t_mix)
-            st["room_reverbs"] = int(np.count_nonzero(w > 1e-4))  # tails convolved for this listener
-            st["late_gen"] = st.get("late_gen", 0) + 1  # the listener moved: the modal mix is made again
-        w, lo, hi, level, t_mix = st["late_params"]
-        if self._modal and st.get("lis_room", -1) >= 0:
-            self._late_modal(st, lis, dist, occ, w, lo, t_mix, out)
+            st.key, st.params = lis.position.copy(), (w, lo, hi, level, t_mix)
+            st.room_reverbs = int(np.count_nonzero(w > 1e-4))  # tails convolved for this listener
+            st.gen = st.gen + 1  # the listener moved: the modal mix is made again
+        w, lo, hi, level, t_mix = st.params
+        if self.modal and st.lis_room >= 0:
+            self._late_modal(st, lis, dist, occ, fresh, w, lo, t_mix, out)
             return
         # Barron & Lee 1988: the late level falls with source distance; a source behind walls excites the
         # coupled space: the send keeps the square root of the direct path's mid-band transmission
         group, use_occ, shapes = self._late_groups(st, n)
-        self.stats["room_reverbs"] = st["room_reverbs"]
-        sends = st["sends"]
-        late_send(self._ring, (self.write - B) % self.hist, dist, occ, use_occ, group, lo, st["send"][:n],
-                  st["send_delay"][:n], st["fresh"][:n], sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
-        self.stats["rooms_sending"] = groups_sending(group, st["send"][:n], st["seen"])
-        lv0 = st["late_level"] if st["late_level"] is not None else level
-        st["late_level"] = level
-        if "fdn" in st:
-            old = st.get("fdn_rt")
+        self.r.stats["room_reverbs"] = st.room_reverbs
+        sends = st.sends
+        late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, lo, st.send[:n],
+                  st.send_delay[:n], fresh, sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
+        self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
+        lv0 = st.level if st.level is not None else level
+        st.level = level
+        if st.fdn is not None:
+            old = st.fdn_rt
             if old is None or abs(old[0] - lo) > 0.002 * lo or abs(old[1] - hi) > 0.002 * hi:  # 0.2 %
-                st["fdn"].set_rt60(lo, hi)
-                st["fdn_rt"] = (lo, hi)
-            np.matmul(st["mid"], sends, out=st["mono"])  # the groups' mid-band couplings
-            add = st["fdn"].process(st["mono"], out=st["fdn_out"])
+                st.fdn.set_rt60(lo, hi)
+                st.fdn_rt = (lo, hi)
+            np.matmul(st.mid, sends, out=st.mono)  # the groups' mid-band couplings
+            add = st.fdn.process(st.mono, out=st.fdn_out)
             mix_ramped(add, 1.0, 1.0, lv0, level, 1.0, out)
             return
-        if len(w) < len(self._tail_rt):  # the shut-door tails play no part outside the rooms
-            w = np.r_[w, np.zeros(len(self._tail_rt) - len(w))]
-            st["late_params"] = (w, lo, hi, level, t_mix)
-        st["conv"].process(sends, w, shapes, out=out, level=(lv0, level), shapes_key=st["shapes_key"])
+        if len(w) < len(self.tail_rt):  # the shut-door tails play no part outside the rooms
+            w = np.r_[w, np.zeros(len(self.tail_rt) - len(w))]
+            st.params = (w, lo, hi, level, t_mix)
+        st.conv.process(sends, w, shapes, out=out, level=(lv0, level), shapes_key=st.shapes_key)
 
-    def _late_modal(self, st, lis, dist, occ, w, lo, t_mix, out) -> None:
+    def _late_modal(self, st, lis, dist, occ, fresh, w, lo, t_mix, out) -> None:
         """The late reverb of coupled rooms (``coupling.late_split``): each source room's send, shaped per band,
         feeds the listener's own room's decay (its probes' tails, blended between doors open and shut as the room's
         decay with its doors as they are) and the slowest mode's (the tails of the room it rings in); the energies
         are the rooms' statistical energy balance, no Sabine level."""
-        n, B = self._n, self.cfg.block
-        c, lr = self.coupling, st["lis_room"]
+        n, B = self.r._n, self.r.cfg.block
+        c, lr = self.r.coupling, st.lis_room
         group, use_occ, _ = self._late_groups(st, n)
         split = c.late_split()
-        key = (split["gen"], st["late_gen"])
-        if st.get("modal_key") != key:
-            st["modal_w"], st["modal_shapes"] = self._modal_mix(st, lis, w, split, lr)
-            st["modal_key"] = key
-            st["room_reverbs"] = int(np.count_nonzero(st["modal_w"][0] > 1e-4) +
-                                     np.count_nonzero(st["modal_w"][1] > 1e-4))
-        self.stats["room_reverbs"] = st["room_reverbs"]
-        sends = st["sends"]
-        late_send(self._ring, (self.write - B) % self.hist, dist, occ, use_occ, group, lo, st["send"][:n],
-                  st["send_delay"][:n], st["fresh"][:n], sends, float(self.cfg.sample_rate), SPEED_OF_SOUND, t_mix)
-        self.stats["rooms_sending"] = groups_sending(group, st["send"][:n], st["seen"])
-        (w_own, w_slow), (sh_own, sh_slow) = st["modal_w"], st["modal_shapes"]
-        st["conv"].process(sends, w_own, sh_own, out=out, shapes_key=key)
-        st["conv_slow"].process(sends, w_slow, sh_slow, out=out, shapes_key=key, ears=self._portal_ears(st, lis))
+        key = (split["gen"], st.gen)
+        if st.modal_key != key:
+            st.modal_w, st.modal_shapes = self._modal_mix(st, lis, w, split, lr)
+            st.modal_key = key
+            st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) +
+                                     np.count_nonzero(st.modal_w[1] > 1e-4))
+        self.r.stats["room_reverbs"] = st.room_reverbs
+        sends = st.sends
+        late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, lo, st.send[:n],
+                  st.send_delay[:n], fresh, sends, float(self.r.cfg.sample_rate), SPEED_OF_SOUND, t_mix)
+        self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
+        (w_own, w_slow), (sh_own, sh_slow) = st.modal_w, st.modal_shapes
+        st.conv.process(sends, w_own, sh_own, out=out, shapes_key=key)
+        st.conv_slow.process(sends, w_slow, sh_slow, out=out, shapes_key=key, ears=self._portal_ears(st, lis))
 
     def _portal_ears(self, st, lis):
         """The slow tail's per-ear gains when it rings in another room: the level differences of the direction it
         enters from (the doorway, ``_modal_mix``), for the head as it is turned now (a table row per 5 degrees of
         azimuth; the gains are made again only when the row changes: nothing allocated while the head turns)."""
-        portal = st["portal"]
+        portal = st.portal
         if portal is None:
             return None
         (px, py), beta = portal
         p = lis.position
         az = math.degrees(math.atan2(py - p[1], px - p[0])) - lis.yaw
         idx = int(round(az / PORTAL_STEP)) % len(self._portal_table)
-        if idx != st["portal_idx"]:
-            portal_curve(self._portal_table[idx], beta, self._portal_bins, st["ears"])
-            st["portal_idx"] = idx
-        return st["ears"]
+        if idx != st.portal_idx:
+            portal_curve(self._portal_table[idx], beta, self._portal_bins, st.ears)
+            st.portal_idx = idx
+        return st.ears
 
     def _portal_tables(self):
         """(A, 2, 9) per-band ear gains of azimuths k x 5 degrees in the horizontal plane over the diffuse field's,
         normalised to a mean power of 1 over the two ears (binaural: the HRTF set; stereo: the constant-power
         panner), and (9, block + 1) the bands' weights over the convolution's bins; None for mono output."""
-        if getattr(self, "_portal_table", None) is not None or self.cfg.output == "mono":
+        if self._portal_table is not None or self.r.cfg.output == "mono":
             return
         az = np.radians(np.arange(0.0, 360.0, PORTAL_STEP))
-        if self.hrtf is not None:
-            n = 1 << int(np.ceil(np.log2(max(4096, 2 * self.hrtf.taps))))
-            H, _ = self.hrtf.lookup_spectra(np.c_[np.cos(az), np.sin(az), np.zeros(len(az))], n)
-            f = np.fft.rfftfreq(n, 1 / self.cfg.sample_rate)
-            diffuse = self.hrtf.diffuse_field[0]
+        if self.r.hrtf is not None:
+            n = 1 << int(np.ceil(np.log2(max(4096, 2 * self.r.hrtf.taps))))
+            H, _ = self.r.hrtf.lookup_spectra(np.c_[np.cos(az), np.sin(az), np.zeros(len(az))], n)
+            f = np.fft.rfftfreq(n, 1 / self.r.cfg.sample_rate)
+            diffuse = self.r.hrtf.diffuse_field[0]
             ratio = np.ones((len(az), 2, len(BANDS)))
             for b, fc in enumerate(BANDS):
                 sel = (f >= fc / np.sqrt(2)) & (f < fc * np.sqrt(2))
@@ -141,7 +262,7 @@ class LateReverb:
                               len(BANDS), axis=2)
         ratio /= np.sqrt(np.mean(ratio ** 2, axis=1, keepdims=True))
         self._portal_table = ratio
-        fb = np.fft.rfftfreq(2 * self.cfg.block, 1 / self.cfg.sample_rate)
+        fb = np.fft.rfftfreq(2 * self.r.cfg.block, 1 / self.r.cfg.sample_rate)
         lf = np.log2(np.maximum(fb, BANDS[0]))
         self._portal_bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
 
@@ -153,15 +274,15 @@ class LateReverb:
         aperture of the coupling's area radiating the neighbour's diffuse field). None for the listener's own
         room or mono output."""
         room = split["slow_room"]
-        if room == lr or self.cfg.output == "mono":
+        if room == lr or self.r.cfg.output == "mono":
             return None
         self._portal_tables()
-        c = self.coupling
+        c = self.r.coupling
         mine = np.flatnonzero(self._probe_room == room)
         if len(mine) == 0:
             return None
         xy = lis.position[:2]
-        src = self._probe_pos[mine[np.argmin(np.sum((self._probe_pos[mine, :2] - xy) ** 2, axis=1))], :2]
+        src = self.r._probe_pos[mine[np.argmin(np.sum((self.r._probe_pos[mine, :2] - xy) ** 2, axis=1))], :2]
         res = c.graph.path(src, xy)
         pt = res.last if res is not None else src
         r = max(float(np.hypot(*(pt - xy))), 0.5)
@@ -170,9 +291,9 @@ class LateReverb:
         return (float(pt[0]), float(pt[1])), x / (1 + x)
 
     def _modal_mix(self, st, lis, w, split, lr):
-        """Tail weights (own, slow) over ``self._tail_rt`` and per-group per-band amplitudes (own, slow) (G, 9)."""
-        P = len(self.probes)
-        rt = self._tail_rt
+        """Tail weights (own, slow) over ``self.tail_rt`` and per-group per-band amplitudes (own, slow) (G, 9)."""
+        P = len(self.r.probes)
+        rt = self.tail_rt
 
         def blend(room, rt_now, weights):
             """Amplitude weights over the tails for ``room``'s probes (energy ``weights``), blended between doors
@@ -194,49 +315,47 @@ class LateReverb:
             e = (1 - beta) * o / o[MID].mean() + beta * s_ / s_[MID].mean()
             return out, e
 
-        d2 = np.sum((self._probe_pos - lis.position) ** 2, axis=1)
+        d2 = np.sum((self.r._probe_pos - lis.position) ** 2, axis=1)
         near = 1 / np.maximum(d2, 0.01)
         w_own, e_own = blend(lr, split["own_rt"][lr], np.asarray(w[:P], float) ** 2)
         w_slow, e_slow = blend(split["slow_room"], split["slow_rt"], near)
         E, f = split["energy"][:, lr], split["slow"][:, lr]  # (R_s, 9)
         own = np.sqrt(np.maximum(E * (1 - f), 0.0) / np.maximum(e_own, 1e-9))
         slow = np.sqrt(np.maximum(E * f, 0.0) / np.maximum(e_slow, 1e-9))
-        sh_own, sh_slow = np.empty((self._groups, len(BANDS))), np.empty((self._groups, len(BANDS)))
+        sh_own, sh_slow = np.empty((self.groups, len(BANDS))), np.empty((self.groups, len(BANDS)))
         sh_own[0], sh_own[1:] = own[lr], own
         sh_slow[0], sh_slow[1:] = slow[lr], slow
-        st["portal"], st["portal_idx"] = self._portal(lis, split, lr), -1
+        st.portal, st.portal_idx = self._portal(lis, split, lr), -1
         return (w_own, w_slow), (sh_own, sh_slow)
 
     def _late_groups(self, st, n: int):
         """Per source, which send it joins (0: the listener's room, or rooms unknown; 1 + r: room r, filtered by
         its coupling to the listener's room) and whether its send falls with the direct path's transmission (rooms
-        unknown); the groups' per-band amplitudes (G, 9), rewritten (and ``st["shapes_key"]`` changed) only when
+        unknown); the groups' per-band amplitudes (G, 9), rewritten (and ``st.shapes_key`` changed) only when
         the listener's room or the coupling changes."""
-        group, use_occ = st["group"][:n], st["use_occ"][:n]
-        lr = st.get("lis_room", -1)
-        if self.coupling is None or lr < 0:
+        group, use_occ = st.group[:n], st.use_occ[:n]
+        lr = st.lis_room
+        if self.r.coupling is None or lr < 0:
             group.fill(0)
             use_occ.fill(True)
-            if st["shapes_key"] != -1:
-                st["shapes"][:] = 1.0
-                st["shapes_key"] = -1
-                if "mid" in st:
-                    st["mid"][:] = 1.0
-            return group, use_occ, st["shapes"]
-        c, pos = self.coupling, self._pos[:n]
-        moved = st["group_moved"] if "group_moved" in st and len(st["group_moved"]) >= n else None
-        if moved is None:
-            moved = st["group_moved"] = np.zeros(self._cap, bool)
+            if st.shapes_key != -1:
+                st.shapes[:] = 1.0
+                st.shapes_key = -1
+                if st.mid is not None:
+                    st.mid[:] = 1.0
+            return group, use_occ, st.shapes
+        c, pos = self.r.coupling, self.r._pos[:n]
+        moved = st.group_moved
         if rows_moved(self._src_room_at[:n], pos, 0.05, moved[:n]):
             idx = np.flatnonzero(moved[:n])
             self._src_room[idx] = c.room_of(pos[idx, :2])
             self._src_room_at[idx] = pos[idx]
         late_groups(self._src_room[:n], lr, group, use_occ)
         key = (c.scene.dynamic_version, lr)  # the transfer changes with the doors only
-        if st["shapes_key"] != key:
-            st["shapes"][1:] = c.transfer()[:, lr]  # the reverb transforms only the groups with sound
-            st["shapes"][0] = 1.0
-            st["shapes_key"] = key
-            if "mid" in st:
-                st["mid"][:] = st["shapes"][:, MID].mean(1)
-        return group, use_occ, st["shapes"]
+        if st.shapes_key != key:
+            st.shapes[1:] = c.transfer()[:, lr]  # the reverb transforms only the groups with sound
+            st.shapes[0] = 1.0
+            st.shapes_key = key
+            if st.mid is not None:
+                st.mid[:] = st.shapes[:, MID].mean(1)
+        return group, use_occ, st.shapes

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from sonicverse_core.acoustics.kernels import count_over, segment_motion
+from sonicverse_core.acoustics.state import PerSource
 from sonicverse_core.scene.materials import BANDS, material_arrays
 
 
@@ -53,9 +54,24 @@ def _part_bounds(mesh) -> tuple[np.ndarray, np.ndarray]:
     return np.minimum.reduceat(tri.min(1)[order], starts), np.maximum.reduceat(tri.max(1)[order], starts)
 
 
+class OcclusionState(PerSource):
+    """A listener's occlusion: per source the segment its rays were last cast along (``seg`` (6,), NaN: never) and
+    how far it has moved since (``moved``); the scene version they were cast in."""
+
+    __slots__ = ("seg", "moved", "scene_version")
+    ROWS = (("seg", (6,), np.float64, np.nan), ("moved", (), np.float64, 0.0))
+
+    def __init__(self, cap: int):
+        super().__init__(cap)
+        self.scene_version = None
+
+
 class Occlusion:
-    """Occlusion state shared by a renderer's listeners; per-listener arrays live in the listener's state dict
-    (``occ_target`` (n, 9), ``occ_seg`` (n, 6), ``occ_moved`` (n,), ``scene_version``)."""
+    """The occlusion subsystem (:class:`~sonicverse_core.acoustics.state.Subsystem`): the ray caster and part boxes
+    shared by a renderer's listeners; each listener's :class:`OcclusionState`. It writes the listener's
+    ``occ_target`` (per source and band, the amplitude through the parts crossed)."""
+
+    name = "occlusion"
 
     def __init__(self, scene, tolerance: float, rays_per_block: int):
         from sonicverse_core.geometry.raycast import SceneRayCaster
@@ -110,26 +126,44 @@ class Occlusion:
         self._boxes()
         self._changed_boxes()
 
-    def update(self, st: dict, pos: np.ndarray, lis: np.ndarray) -> None:
-        """Recast what needs it for sources at ``pos`` (n, 3) heard at ``lis`` (3,); writes st['occ_target']."""
+    # --- the subsystem protocol ----------------------------------------------------------------------------------
+    def state(self, cap: int) -> OcclusionState:
+        return OcclusionState(cap)
+
+    def grow(self, state: OcclusionState | None, cap: int) -> None:
+        if state is not None:
+            state.grow(cap)
+
+    def max_delay(self) -> float:
+        return 0.0
+
+    def render(self, state: OcclusionState, ls, lis, out) -> None:
+        self.update(state, ls.pos, lis.position, ls.occ_target)
+
+    def reset(self, state: OcclusionState) -> None:
+        pass
+
+    def update(self, st: OcclusionState, pos: np.ndarray, lis: np.ndarray, occ_target: np.ndarray) -> None:
+        """Recast what needs it for sources at ``pos`` (n, 3) heard at ``lis`` (3,); writes their rows of
+        ``occ_target`` (cap, 9)."""
         n = len(pos)
         version = self.scene.dynamic_version
         # never-cast segments have NaN ends: infinitely moved, they go first
-        moved = st["occ_moved"][:n]
-        segment_motion(pos, lis, st["occ_seg"][:n], moved)
-        if version == st["scene_version"] and not count_over(moved, self.tolerance):
+        moved = st.moved[:n]
+        segment_motion(pos, lis, st.seg[:n], moved)
+        if version == st.scene_version and not count_over(moved, self.tolerance):
             return  # the steady state: nothing moved, nothing cast, nothing allocated
         todo = moved > self.tolerance
         if np.count_nonzero(todo) > self.budget:
             todo = np.zeros(n, bool)
             todo[np.argpartition(-moved, self.budget)[: self.budget]] = True
-        if version != st["scene_version"]:  # a door or an object moved: recast, now, every segment it may affect
-            dirty = self._changed_boxes() if st["scene_version"] is not None else None
+        if version != st.scene_version:  # a door or an object moved: recast, now, every segment it may affect
+            dirty = self._changed_boxes() if st.scene_version is not None else None
             if dirty is None:
                 todo[:] = True
             elif len(dirty[0]):
                 todo |= segment_meets_boxes(pos, np.broadcast_to(lis, pos.shape), *dirty)
-            st["scene_version"] = version
+            st.scene_version = version
         if not np.any(todo):
             return
         idx = np.flatnonzero(todo)
@@ -148,5 +182,5 @@ class Occlusion:
                 logamp = np.zeros((len(cast), len(BANDS)))
                 np.add.at(logamp, cr.ray[first], self._log_trans[cr.material[first]])
                 target[cast] = np.exp(logamp)
-        st["occ_target"][idx] = target
-        st["occ_seg"][idx] = np.concatenate([a, b], axis=1)
+        occ_target[idx] = target
+        st.seg[idx] = np.concatenate([a, b], axis=1)

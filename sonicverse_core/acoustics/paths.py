@@ -15,7 +15,7 @@ Baked once per scene (:func:`path_graph`, cached in memory by the static structu
 * all-pairs shortest paths (Dijkstra), recomputed with the leaves' edges when a door moves (milliseconds for a
   home: 24 nodes in the default apartment).
 
-At run time (:class:`PathState`), for each source and listener without line of sight on the slice: the nodes each
+At run time (:class:`Paths`), for each source and listener without line of sight on the slice: the nodes each
 can see (cached per source and per listener until it moves), the shortest path S -> a ... b -> L over them, and
 along it:
 
@@ -42,6 +42,7 @@ import numpy as np
 from numba import njit
 
 from sonicverse_core.acoustics.kernels import distance_gain_1
+from sonicverse_core.acoustics.state import PerSource
 from sonicverse_core.scene.materials import BANDS
 
 _opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
@@ -469,49 +470,78 @@ def path_graph(scene, cell: float = 0.1, height: float = 1.5, caster=None) -> Pa
     return g
 
 
-class PathState:
-    """The renderer's propagation-path subsystem: the scene's :class:`PathGraph`, the nodes each source sees
-    (shared by listeners, kept until the source moves), and per listener (arrays in its state dict) each source's
-    path, recomputed when an end moved more than ``tolerance`` or a door moved, at most ``budget`` a block.
+class PathsState(PerSource):
+    """A listener's paths: per source whether it has one (``on``), its length, its last and first bends, its
+    per-band amplitude, the segment it was traced for (``seg``, NaN: never) and how far that moved, the emitter it
+    makes (``eff``, ``fwd``, ``rel``) and the per-band ``target`` it hands on; the graph nodes the listener sees
+    (``vis_l``, from where: ``vis_l_at``) and the scene version they were found in."""
+
+    __slots__ = ("on", "length", "last", "first", "amp", "seg", "rel", "target", "eff", "fwd", "moved", "vis_l",
+                 "vis_l_at", "version")
+    ROWS = (("on", (), bool, False), ("length", (), np.float64, 0.0), ("last", (2,), np.float64, 0.0),
+            ("first", (2,), np.float64, 0.0), ("amp", (len(BANDS),), np.float64, 0.0),
+            ("seg", (6,), np.float64, np.nan), ("rel", (3,), np.float64, 0.0),
+            ("target", (len(BANDS),), np.float64, 1.0), ("eff", (3,), np.float64, 0.0),
+            ("fwd", (3,), np.float64, 0.0), ("moved", (), np.float64, 0.0))
+
+    def __init__(self, cap: int, nodes: int):
+        super().__init__(cap)
+        self.vis_l = np.zeros(nodes, bool)
+        self.vis_l_at = np.full(3, np.nan)
+        self.version = None
+
+
+class Paths:
+    """The renderer's propagation-path subsystem (:class:`~sonicverse_core.acoustics.state.Subsystem`): the scene's
+    :class:`PathGraph`, the nodes each source sees (shared by listeners, kept until the source moves), and per
+    listener (:class:`PathsState`) each source's path, recomputed when an end moved more than ``tolerance`` or a
+    door moved, at most ``budget`` a block.
 
     :meth:`apply` turns a block's straight-line transmission (the occlusion subsystem's per-band target) into what
     the direct renderer plays: per source, the path and the transmission added in energy and heard from a virtual
     source blended between the path's last bend and the source by their energies, at the blended length; the
-    source's forward turned so that its directivity acts on the path's first leg."""
+    source's forward turned so that its directivity acts on the path's first leg. ``rolloff``: the renderer's
+    distance-law parameters (mode, d0, max distance, near-field factor)."""
 
-    KEYS = ("path_on", "path_len", "path_last", "path_first", "path_amp", "path_seg", "path_rel")
+    name = "paths"
 
-    def __init__(self, graph: PathGraph, diffraction: str = "fresnel", tolerance: float = 0.02, budget: int = 64):
+    def __init__(self, graph: PathGraph, diffraction: str = "fresnel", tolerance: float = 0.02, budget: int = 64,
+                 rolloff: tuple = (0, 1.0, 500.0, 0.0)):
         self.graph, self.tolerance, self.budget = graph, tolerance, budget
         self.bend_loss = diffraction != "none"
+        self.rolloff = rolloff
         self._version = None
         self._src_at = np.zeros((0, 3))
         self._vis = np.zeros((0, len(graph.nodes)), bool)
         self.stats = {"paths": 0, "path_queries": 0}
 
-    def grow(self, st: dict | None, cap: int) -> None:
-        """Room for ``cap`` sources (the renderer's state, or one listener's state dict)."""
+    # --- the subsystem protocol ----------------------------------------------------------------------------------
+    def state(self, cap: int) -> PathsState:
+        return PathsState(cap, len(self.graph.nodes))
+
+    def grow(self, st: PathsState | None, cap: int) -> None:
+        """Room for ``cap`` sources (None: the nodes the sources see; or one listener's state)."""
         from sonicverse_core.acoustics.sources import grown as _grown
 
         if st is None:
             self._src_at = _grown(self._src_at, (cap, 3), np.float64, np.nan)
             self._vis = _grown(self._vis, (cap, len(self.graph.nodes)), bool)
             return
-        for key, shape, dtype, fill in (("path_on", (cap,), bool, False), ("path_len", (cap,), np.float64, 0.0),
-                                        ("path_last", (cap, 2), np.float64, 0.0),
-                                        ("path_first", (cap, 2), np.float64, 0.0),
-                                        ("path_amp", (cap, len(BANDS)), np.float64, 0.0),
-                                        ("path_seg", (cap, 6), np.float64, np.nan),
-                                        ("path_rel", (cap, 3), np.float64, 0.0),
-                                        ("path_target", (cap, len(BANDS)), np.float64, 1.0),
-                                        ("path_eff", (cap, 3), np.float64, 0.0), ("path_fwd", (cap, 3), np.float64, 0.0),
-                                        ("path_moved", (cap,), np.float64, 0.0)):
-            st[key] = _grown(st.get(key), shape, dtype, fill)
-        st.setdefault("vis_l", np.zeros(len(self.graph.nodes), bool))
-        st.setdefault("vis_l_at", np.full(3, np.nan))
-        st.setdefault("path_version", None)
+        st.grow(cap)
 
-    def update(self, st: dict, pos: np.ndarray, lis: np.ndarray) -> None:
+    def max_delay(self) -> float:
+        return 0.0  # a path's emitter is read by the direct sound, within its maximum distance
+
+    def render(self, st: PathsState, ls, lis, out) -> None:
+        """The block's emitters and targets for the stages after it (``ls.pos``, ``ls.fwd``, ``ls.target``)."""
+        self.update(st, ls.pos, lis.position)
+        ls.target, ls.pos, ls.fwd = self.apply(st, ls.pos, ls.fwd, lis.position, ls.target, self.rolloff,
+                                               ls.smoothing, ls.fresh[:ls.n])
+
+    def reset(self, st: PathsState) -> None:
+        pass
+
+    def update(self, st: PathsState, pos: np.ndarray, lis: np.ndarray) -> None:
         from sonicverse_core.acoustics.kernels import count_over, farther, segment_motion
 
         g, n = self.graph, len(pos)
@@ -520,19 +550,19 @@ class PathState:
             g.refresh()
             self._version = version
             self._src_at[:] = np.nan
-        if st["path_version"] != version:
-            st["path_version"] = version
-            st["path_seg"][:] = np.nan
-            st["vis_l_at"][:] = np.nan
-        if farther(st["vis_l_at"], lis, self.tolerance):  # NaN: never computed
-            g_vis = st["vis_l"]
+        if st.version != version:
+            st.version = version
+            st.seg[:] = np.nan
+            st.vis_l_at[:] = np.nan
+        if farther(st.vis_l_at, lis, self.tolerance):  # NaN: never computed
+            g_vis = st.vis_l
             if len(g.nodes):
                 visible_nodes(g.blocked, g.origin, g.cell, lis[:2].astype(np.float64), g.nodes, g.leaves,
                               g.blocking, g_vis)
                 g_vis &= g.node_ok
-            st["vis_l_at"][:] = lis
-        moved = st["path_moved"][:n]
-        segment_motion(pos, lis, st["path_seg"][:n], moved)
+            st.vis_l_at[:] = lis
+        moved = st.moved[:n]
+        segment_motion(pos, lis, st.seg[:n], moved)
         if not count_over(moved, self.tolerance):  # the steady state: nothing to trace, nothing allocated
             return
         todo = np.flatnonzero(moved > self.tolerance)
@@ -547,25 +577,24 @@ class PathState:
                               g.blocking, self._vis[i])
                 self._vis[i] &= g.node_ok
             self._src_at[i] = pos[i]
-        trace_paths(todo.astype(np.int64), pos, lis.astype(np.float64), self._vis, st["vis_l"], g.blocked, g.origin,
+        trace_paths(todo.astype(np.int64), pos, lis.astype(np.float64), self._vis, st.vis_l, g.blocked, g.origin,
                     g.cell, g.nodes, g.dist, g.pred, g.leaves, g.door_segments, g.aperture, BANDS, 343.0,
-                    self.bend_loss, st["path_on"], st["path_len"], st["path_last"], st["path_first"], st["path_amp"])
-        st["path_seg"][todo] = np.concatenate([pos[todo], np.broadcast_to(lis, (len(todo), 3))], axis=1)
+                    self.bend_loss, st.on, st.length, st.last, st.first, st.amp)
+        st.seg[todo] = np.concatenate([pos[todo], np.broadcast_to(lis, (len(todo), 3))], axis=1)
         self.stats["path_queries"] += len(todo)
 
-    def apply(self, st: dict, pos: np.ndarray, fwd: np.ndarray, lis: np.ndarray, transmission: np.ndarray,
+    def apply(self, st: PathsState, pos: np.ndarray, fwd: np.ndarray, lis: np.ndarray, transmission: np.ndarray,
               rolloff: tuple, smoothing: float, fresh: np.ndarray):
         """(per-band target (n, 9), emitter positions (n, 3), forwards (n, 3)) for this block, in the listener's
-        buffers (valid until its next block); ``rolloff``: the renderer's distance-law parameters (mode, d0, max
-        distance, near-field factor)."""
+        buffers (valid until its next block)."""
         n = len(pos)
-        target, eff, f = st["path_target"][:n], st["path_eff"][:n], st["path_fwd"][:n]
+        target, eff, f = st.target[:n], st.eff[:n], st.fwd[:n]
         np.copyto(target, transmission)
         np.copyto(eff, pos)
         np.copyto(f, fwd)
-        self.stats["paths"] = combine_paths(st["path_on"][:n], pos, fwd, lis, transmission,
-                                            st["path_len"][:n], st["path_last"][:n], st["path_first"][:n],
-                                            st["path_amp"][:n], st["path_rel"][:n], fresh, float(smoothing or 0.0),
+        self.stats["paths"] = combine_paths(st.on[:n], pos, fwd, lis, transmission,
+                                            st.length[:n], st.last[:n], st.first[:n],
+                                            st.amp[:n], st.rel[:n], fresh, float(smoothing or 0.0),
                                             *rolloff, target, eff, f)
         return target, eff, f
 
