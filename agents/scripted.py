@@ -136,7 +136,9 @@ class MapDriver(Agent):
             path, length = w.grid.shortest_path(p, goal)
             self.path = path if np.isfinite(length) and len(path) > 1 else np.array([p, goal])
             self.k, self.goal = 1, np.array(goal, float)
-        self.k = next_waypoint(w.grid, self.path, self.k, p)
+        while (self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2
+               and w.grid.line_of_sight(p, self.path[self.k + 1])):
+            self.k += 1
         return _pursue(p, w.pose[2], self.path[min(self.k, len(self.path) - 1)], self.robot, self.dt,
                        slow_within=slow)
 
