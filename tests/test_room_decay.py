@@ -54,6 +54,27 @@ def test_a_dead_room_beside_a_live_one_decays_with_two_slopes():
     assert q["G"][KHZ] > p["G"][KHZ] + 10
 
 
+def test_the_fdn_option_with_rooms_of_their_own_decays_with_two_slopes():
+    """reverb="fdn" with per-room bakes: one network at the dead room's own decay, one at the slowest mode's; the
+    tail falls fast first, then as the live room's mode (its slope within 25% of the mode's mid-band RT60)."""
+    scene = load_scene(DEAD)
+    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", reverb="fdn", early_reflections=False),
+                         probes=scene_probes(scene, BakeConfig(per_room=True)))
+    assert r.late.modal
+    x = np.zeros(int(2.0 * FS), np.float32)
+    x[0] = 1.0
+    r.add_source(x, position=(1.2, 1.2, 1.5), loop=False)
+    r.add_listener((2.8, 3.0, 1.5))
+    e = r.render(2.0)[0].astype(float).sum(0) ** 2
+    level = lambda t: 10 * np.log10(e[int(t * FS):int(t * FS) + 1600].mean())  # noqa: E731 - 0.1 s windows
+    st = r._state[0].late
+    own, slow = st.fdn.rt60[0], st.fdn_slow.rt60[0]
+    assert own < 0.2 and slow > 5 * own  # the dead room's decay and the live room's mode
+    assert level(0.0) - level(0.2) > 30  # the fast slope
+    rt_late = 60 * 1.2 / (level(0.4) - level(1.6))
+    assert abs(rt_late / slow - 1) < 0.25, (rt_late, slow)
+
+
 def test_the_live_rooms_decay_reaches_the_dead_room():
     """Listener in the dead room, source in the live one: what it hears decays as the live room does."""
     scene = load_scene(DEAD)

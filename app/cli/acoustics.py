@@ -129,6 +129,8 @@ def add_audio_commands(sub, bench_sub) -> None:
     ba.add_argument("--sample-rate", type=A.count(8000, 192000), default=48000, help="Hz (default: %(default)s)")
     ba.add_argument("--block", type=A.count(16, 8192), default=256, help="frames per block (default: %(default)s)")
     ba.add_argument("--per-room", action="store_true", help=per_room_help)
+    ba.add_argument("--reverb", choices=("convolution", "fdn"), default="convolution",
+                    help="late reverb: partitioned convolution (default) or the cheaper FDN")
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
@@ -163,7 +165,7 @@ def cmd_bench_audio(a) -> int:
     from app.bench.engine import bench_audio
 
     print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block,
-                                 per_room=a.per_room)))
+                                 per_room=a.per_room, reverb=a.reverb)))
     return 0
 
 

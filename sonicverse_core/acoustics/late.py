@@ -26,12 +26,13 @@ class LateState(PerSource):
     send it joins (``group``: 0 the listener's room or rooms unknown, 1 + r room r) and whether its send falls with
     the direct path's transmission (``use_occ``); per group the block's sends, which carry sound (``seen``) and their
     per-band amplitudes (``shapes``, made for ``shapes_key``); the reverberator (``conv`` and, with rooms of their
-    own, ``conv_slow`` and its direction ``ears`` / ``portal``; or ``fdn``); the probes' mix for where the listener
+    own, ``conv_slow`` and its direction ``ears`` / ``portal``; or ``fdn``, and ``fdn_slow`` with rooms of their own); the probes' mix for where the listener
     stands (``params``, made at ``key``; its room ``lis_room``) and the level it was rendered at."""
 
     __slots__ = ("send", "send_delay", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow", "ears", "portal",
                  "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono", "fdn_out", "key",
-                 "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes", "fdn_rt")
+                 "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes", "fdn_rt",
+                 "fdn_slow", "mid_own", "mid_slow", "fdn_key")
     ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("group", (), np.int64, 0),
             ("use_occ", (), bool, True), ("group_moved", (), bool, False))
 
@@ -39,6 +40,7 @@ class LateState(PerSource):
         super().__init__(cap)
         self.fdn = self.conv = self.conv_slow = self.ears = self.portal = None
         self.mid = self.mono = self.fdn_out = self.fdn_rt = None
+        self.fdn_slow = self.mid_own = self.mid_slow = self.fdn_key = None
         self.portal_idx = -1
         self.level = None
         self.sends = np.zeros((groups, block), np.float32)
@@ -73,8 +75,7 @@ class LateReverb:
         # the tails: each probe's as baked, and, with coupled rooms, each probe's room with its doorways shut
         # (0.161 V / A_own): a room's decay with its doors as they are lies between the two
         self.tail_rt = self.rt
-        self.modal = (r.coupling is not None and cfg.reverb == "convolution"
-                      and any(p.room is not None for p in r.probes))  # probes baked per room
+        self.modal = r.coupling is not None and any(p.room is not None for p in r.probes)  # probes baked per room
         if self.modal:
             c = r.coupling
             shut, self._shut = [], np.arange(len(r.probes))  # the tail index of each probe's shut-door decay
@@ -97,6 +98,10 @@ class LateReverb:
             st.mid = np.ones(self.groups, np.float32)
             st.mono = np.zeros(cfg.block, np.float32)
             st.fdn_out = np.zeros((2, cfg.block))
+            if self.modal:  # a second network: the slowest coupled mode
+                st.fdn_slow = FDNReverb(cfg.sample_rate, cfg.block)
+                st.mid_own = np.ones(self.groups, np.float32)
+                st.mid_slow = np.ones(self.groups, np.float32)
         else:
             from sonicverse_core.acoustics.reverb import ConvolutionReverb
 
@@ -120,10 +125,10 @@ class LateReverb:
         return self.r.direct.max_delay() + MAX_MIXING_TIME  # the send's pre-delay
 
     def reset(self, st: LateState) -> None:
-        for rev in (st.fdn, st.conv, st.conv_slow):
+        for rev in (st.fdn, st.fdn_slow, st.conv, st.conv_slow):
             if rev is not None:
                 rev.reset()
-        st.level, st.key = None, None
+        st.level, st.key, st.fdn_key = None, None, None
 
     def render(self, st: LateState, ls, lis, out) -> None:
         """The late reverb of every source, added into ``out``."""
@@ -212,16 +217,35 @@ class LateReverb:
         if st.modal_key != key:
             st.modal_w, st.modal_shapes = self._modal_mix(st, lis, w, split, lr)
             st.modal_key = key
-            st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) +
-                                     np.count_nonzero(st.modal_w[1] > 1e-4))
+            st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) + np.count_nonzero(st.modal_w[1] > 1e-4))
         self.r.stats["room_reverbs"] = st.room_reverbs
         sends = st.sends
         late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, lo, st.send[:n],
                   st.send_delay[:n], fresh, sends, float(self.r.cfg.sample_rate), SPEED_OF_SOUND, t_mix)
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
+        if st.fdn is not None:
+            self._fdn_modal(st, split, lr, sends, out)
+            return
         (w_own, w_slow), (sh_own, sh_slow) = st.modal_w, st.modal_shapes
         st.conv.process(sends, w_own, sh_own, out=out, shapes_key=key)
         st.conv_slow.process(sends, w_slow, sh_slow, out=out, shapes_key=key, ears=self._portal_ears(st, lis))
+
+    def _fdn_modal(self, st, split, lr, sends, out) -> None:
+        """The FDN option with rooms of their own: one network decaying as the listener's room does with its doors
+        as they are, one as the slowest mode, each fed the rooms' sends at their mid-band amplitudes of the energy
+        balance (the cheap option: two decay times per network, no per-band shapes, the slow tail without a
+        direction)."""
+        if st.fdn_key != st.modal_key:  # the doors or the listener moved: new decays and amplitudes
+            own, slow = split["own_rt"][lr], split["slow_rt"]
+            st.fdn.set_rt60(float(np.mean(own[3:6])), float(own[7]))
+            st.fdn_slow.set_rt60(float(np.mean(slow[3:6])), float(slow[7]))
+            sh_own, sh_slow = st.modal_shapes
+            st.mid_own[:] = sh_own[:, MID].mean(1)
+            st.mid_slow[:] = sh_slow[:, MID].mean(1)
+            st.fdn_key = st.modal_key
+        for fdn, mid in ((st.fdn, st.mid_own), (st.fdn_slow, st.mid_slow)):
+            np.matmul(mid, sends, out=st.mono)
+            np.add(out, fdn.process(st.mono, out=st.fdn_out), out=out)
 
     def _portal_ears(self, st, lis):
         """The slow tail's per-ear gains when it rings in another room: the level differences of the direction it
