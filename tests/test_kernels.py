@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from sonicverse_core.acoustics import kernels as K
+from sonicverse_core.acoustics import late_kernels as LK
 
 FS = 48000.0
 RNG = np.random.default_rng(11)
@@ -96,7 +97,7 @@ def test_fdn_process_is_a_householder_network():
     x = RNG.normal(size=B)
     buf, z = np.zeros((N, size)), np.zeros(N)
     out = np.empty((2, B))
-    pos = K.fdn_process(x, out, buf.copy(), 0, delays, b0, p, z.copy(), cl, cr, 0.7, np.empty(N))
+    pos = LK.fdn_process(x, out, buf.copy(), 0, delays, b0, p, z.copy(), cl, cr, 0.7, np.empty(N))
     # twin: explicit matrix form, A = I - 2/N 1 1^T
     A = np.eye(N) - 2.0 / N
     rbuf, rz, ref = np.zeros((N, size)), np.zeros(N), np.zeros((2, B))
@@ -177,7 +178,7 @@ def test_late_send():
     group = np.array([0, 1, 1])
     out = np.empty((2, B), np.float32)
     pd = p_delay.copy()
-    K.late_send(ring, 40, dist, occ, use_occ, group, 0.6, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012)
+    LK.late_send(ring, 40, dist, occ, use_occ, group, 0.6, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012)
     s = 10 ** (-0.174 * dist / 0.6 / 20 - 3 * 0.012 / 0.6) * np.where(use_occ, np.sqrt(occ[:, 4:7].mean(1)), 1.0)
     s0 = np.where(fresh, s, p_send)
     r = (np.arange(B) + 1) / B
@@ -275,7 +276,7 @@ def test_fdl_mac():
     fdl = (RNG.normal(size=(P, F)) + 1j * RNG.normal(size=(P, F))).astype(np.complex64)
     H = (RNG.normal(size=(2 * P, 2, F)) + 1j * RNG.normal(size=(2 * P, 2, F))).astype(np.complex64)
     out = np.empty((2, F), np.complex64)
-    K.fdl_mac(fdl, H, 3, out)
+    LK.fdl_mac(fdl, H, 3, out)
     np.testing.assert_allclose(out, np.einsum("pf,pef->ef", fdl, H[3:3 + P]), rtol=1e-4, atol=1e-4)
 
 
@@ -286,10 +287,10 @@ def test_portal_curve():
     bins /= bins.sum(0, keepdims=True)
     out = np.empty((2, 33), np.complex64)
     for beta in (0.0, 0.3, 1.0):
-        K.portal_curve(ratio, beta, bins, out)
+        LK.portal_curve(ratio, beta, bins, out)
         np.testing.assert_allclose(out.real, np.sqrt(beta * ratio ** 2 + 1 - beta) @ bins, rtol=1e-5)
         assert np.all(out.imag == 0)
-    K.portal_curve(ratio, 0.0, bins, out)
+    LK.portal_curve(ratio, 0.0, bins, out)
     np.testing.assert_allclose(out.real, 1.0, rtol=1e-5)  # all diffuse: no change
 
 
@@ -297,11 +298,13 @@ def test_every_kernel_has_a_twin():
     """A kernel added without a twin fails here."""
     import inspect
 
-    kernels = {n for n, f in vars(K).items() if hasattr(f, "py_func") and not n.startswith("_")}
     here = open(__file__).read() + open(__file__.replace("test_kernels.py", "test_engine.py")).read()
-    missing = sorted(n for n in kernels if f"K.{n}(" not in here and f"import {n}" not in here)
-    assert not missing, missing
-    assert inspect.getsource(K).count("@njit") == len(kernels) + 2  # + the private _tap (inside gather's twin), _image
+    for mod, prefix, private in ((K, "K", 2), (LK, "LK", 0)):  # K's private _tap (inside gather's twin), _image
+        kernels = {n for n, f in vars(mod).items() if hasattr(f, "py_func") and not n.startswith("_")
+                   and f.__module__ == mod.__name__}
+        missing = sorted(n for n in kernels if f"{prefix}.{n}(" not in here and f"import {n}" not in here)
+        assert not missing, missing
+        assert inspect.getsource(mod).count("@njit") == len(kernels) + private
 
 
 def test_no_kernel_makes_an_array():
@@ -312,7 +315,8 @@ def test_no_kernel_makes_an_array():
     from sonicverse_core.acoustics import paths
 
     made = ("np.empty(", "np.zeros(", "np.ones(", "np.full(", "np.array(", ".copy()", "np.concatenate(", "np.stack(")
-    per_block = [f for f in vars(K).values() if hasattr(f, "py_func")] + [paths.combine_paths, paths._unit]
+    per_block = [f for mod in (K, LK) for f in vars(mod).values() if hasattr(f, "py_func")] + \
+        [paths.combine_paths, paths._unit]
     bad = [(f.__name__, m) for f in per_block for m in made if m in inspect.getsource(f.py_func).split('"""')[-1]]
     assert not bad, bad
 
@@ -392,7 +396,7 @@ def test_block_glue_kernels():
     K.add_tail(both[0], 2.0, out)
     np.testing.assert_allclose(out, 1 + 2.0 * both[0, :, -B:], rtol=1e-6)
     out = np.zeros((2, B))
-    K.mix_ramped(both[0], 0.2, 0.6, 1.0, 0.5, 0.1, out)
+    LK.mix_ramped(both[0], 0.2, 0.6, 1.0, 0.5, 0.1, out)
     r = (np.arange(B) + 1) / B
     np.testing.assert_allclose(out, 0.1 * both[0, :, -B:] * (0.2 + 0.4 * r) * (1.0 - 0.5 * r), rtol=1e-6)
 
@@ -419,22 +423,22 @@ def test_block_glue_kernels():
 
     room = np.array([-1, 0, 2, 1, 0])
     group, use = np.empty(5, np.int64), np.empty(5, bool)
-    K.late_groups(room, 0, group, use)
+    LK.late_groups(room, 0, group, use)
     np.testing.assert_array_equal(group, np.where((room >= 0) & (room != 0), room + 1, 0))
     np.testing.assert_array_equal(use, room < 0)
     send = np.array([0.0, 0.1, 0.2, 0.0, 0.3])
-    assert K.groups_sending(group, send, np.zeros(4, bool)) == len(np.unique(group[send > 0]))
+    assert LK.groups_sending(group, send, np.zeros(4, bool)) == len(np.unique(group[send > 0]))
 
     xs, prev = np.zeros((3, 8), np.float32), np.zeros((3, 8), np.float32)
     xs[0, 3], prev[2, 0] = 1.0, 0.5
     live = np.empty(3, bool)
-    assert K.live_rows(xs, prev, live) == 2
+    assert LK.live_rows(xs, prev, live) == 2
     np.testing.assert_array_equal(live, np.any(xs != 0, 1) | np.any(prev != 0, 1))
     X = (RNG.normal(size=(3, 5)) + 1j * RNG.normal(size=(3, 5))).astype(np.complex64)
     curves = RNG.uniform(0, 1, (3, 5)).astype(np.float32)
     row = np.empty(5, np.complex64)
     for shaped in (True, False):
-        K.fdl_fill(X, curves, live, shaped, row)
+        LK.fdl_fill(X, curves, live, shaped, row)
         np.testing.assert_allclose(row, ((X * curves) if shaped else X)[live].sum(0), rtol=1e-5)
 
     pend, ring_row = RNG.normal(size=16).astype(np.float32), np.empty(16, np.float32)

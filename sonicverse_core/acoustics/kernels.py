@@ -3,7 +3,7 @@
 NumPy would do each of these with several full-size temporaries per block; compiled loops touch every sample once
 and release the GIL, so the audio thread and the frame loop can run side by side. Every kernel has a NumPy twin in
 the tests that it must match (tests/test_kernels.py, gather's in tests/test_engine.py; a kernel without one fails
-``test_every_kernel_has_a_twin``).
+``test_every_kernel_has_a_twin``). The late reverb's kernels are in ``late_kernels.py``.
 """
 from __future__ import annotations
 
@@ -216,37 +216,6 @@ def accumulate(X, spec, p_spec, acc_new, acc_old):
 
 
 @njit(**_opts)
-def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm, y):
-    """One block of an N-line FDN with a Householder feedback matrix and one-pole damping per line.
-    buf (N, size) ring; pos: write index; z (N,) filter states; y (N,) scratch. Returns the new write index."""
-    N, size = buf.shape
-    B = len(x)
-    h = 2.0 / N
-    inj = 1.0 / np.sqrt(N)
-    for t in range(B):
-        s = 0.0
-        o0 = 0.0
-        o1 = 0.0
-        for k in range(N):
-            v = buf[k, (pos - delays[k]) % size]
-            o0 += cl[k] * v
-            o1 += cr[k] * v
-            zz = b0[k] * v + p[k] * z[k]
-            if abs(zz) < 1e-25:
-                zz = 0.0
-            z[k] = zz
-            y[k] = zz
-            s += zz
-        s *= h
-        for k in range(N):
-            buf[k, pos] = y[k] - s + x[t] * inj
-        pos = (pos + 1) % size
-        out[0, t] = o0 * norm
-        out[1, t] = o1 * norm
-    return pos
-
-
-@njit(**_opts)
 def distance_gain_1(d, mode, d0, D, near_k):
     """Rolloff gain (Resonance Audio's curves: mode 0 log, 1 linear, 2 none; 0 beyond D) times the bounded
     near-field boost under 1 m."""
@@ -403,66 +372,10 @@ def accumulate_sh(A, filters, acc):
 
 
 @njit(**_opts)
-def late_send(ring, w0, dist, occ, use_occ, group, rt_low, p_send, p_delay, fresh, out, fs, c_sound, t_mix):
-    """Sends to the late reverb, one per group of sources (out (G, B): the groups are the rooms the sources are in,
-    which the renderer filters by their coupling to the listener's room): per source, its dry samples delayed by
-    its travel time plus the mixing time (ring[i, w0 + t - D], D = round((dist / c + t_mix) fs): the tail starts
-    after the direct sound and the early reflections; when D changes, the old and the new delay are crossfaded
-    across the block, so a teleport sends no step into the reverb), scaled by 10^(-0.174 r / T / 20) (Barron & Lee:
-    the late level falls with distance) x 10^(-3 t_mix / T) (the decay before the tail starts), and, where the
-    rooms are unknown (use_occ), by the square root of the mid-band transmission of the direct path; ramped from
-    p_send. p_send and p_delay (int64) are updated."""
-    B = out.shape[1]
-    H = ring.shape[1]
-    out[:] = 0.0
-    T = max(rt_low, 0.05)
-    for i in range(len(dist)):
-        s = 10.0 ** (-0.174 * dist[i] / T / 20.0 - 3.0 * t_mix / T)
-        if use_occ[i]:
-            o = 0.0
-            for b in range(4, 7):
-                o += occ[i, b]
-            s *= np.sqrt(max(o / 3.0, 0.0))
-        elif occ[i, 4] == 0.0 and occ[i, 5] == 0.0 and occ[i, 6] == 0.0:
-            s = 0.0  # a source this listener does not hear
-        D = np.int64((dist[i] / c_sound + t_mix) * fs + 0.5)
-        s0 = s if fresh[i] else p_send[i]
-        D0 = D if fresh[i] else p_delay[i]
-        p_send[i] = s
-        p_delay[i] = D
-        if s == 0.0 and s0 == 0.0:
-            continue
-        g = group[i]
-        ds = (s - s0) / B
-        if D0 == D:
-            for t in range(B):
-                out[g, t] += ring[i, (w0 + t - D) % H] * np.float32(s0 + ds * (t + 1))
-        else:
-            for t in range(B):
-                r = (t + 1) / B
-                v = ring[i, (w0 + t - D0) % H] * (1.0 - r) + ring[i, (w0 + t - D) % H] * r
-                out[g, t] += v * np.float32(s0 + ds * (t + 1))
-
-
-@njit(**_opts)
 def distance_gains(d, mode, d0, D, near_k, out):
     """distance_gain_1 over an array."""
     for i in range(len(d)):
         out[i] = distance_gain_1(d[i], mode, d0, D, near_k)
-
-
-@njit(**_fast)
-def fdl_mac(fdl, H, off, out):
-    """Partitioned convolution's frequency-domain multiply-accumulate: Y[e, f] = sum_p fdl[p, f] H[off + p, e, f]
-    (fdl (P, F) the input spectra, newest last in the circular order that ``off`` selects; H (2P, E, F) the tail's
-    partitions, doubled so that no index wraps). The inverse FFT is the caller's; out (E, F) is overwritten."""
-    P, F = fdl.shape
-    E = out.shape[0]
-    out[:] = 0
-    for p in range(P):
-        for e in range(E):
-            for f in range(F):
-                out[e, f] += fdl[p, f] * H[off + p, e, f]
 
 
 # --- the per-block glue of the renderer: each replaces a NumPy expression that made temporaries ----------------------
@@ -522,19 +435,6 @@ def add_tail(y, scale, out):
     for e in range(E):
         for t in range(B):
             out[e, t] += scale * y[e, off + t]
-
-
-@njit(**_opts)
-def mix_ramped(y, w0, w1, lv0, lv1, scale, out):
-    """out[e, t] += scale y[e, N - B + t] (w0 + (w1 - w0) r) (lv0 + (lv1 - lv0) r), r = (t + 1) / B: a probe's tail
-    with its ramped mixing weight and the ramped late level."""
-    E, B = out.shape
-    off = y.shape[1] - B
-    for t in range(B):
-        r = (t + 1) / B
-        g = scale * (w0 + (w1 - w0) * r) * (lv0 + (lv1 - lv0) * r)
-        for e in range(E):
-            out[e, t] += g * y[e, off + t]
 
 
 @njit(**_opts)
@@ -635,73 +535,3 @@ def count_over(x, tol):
             c += 1
     return c
 
-
-@njit(**_opts)
-def late_groups(room, lis_room, group, use_occ):
-    """Per source: the late send it joins (0: the listener's room, or the room is unknown; 1 + r: room r) and
-    whether its send falls with the direct path's transmission (its room is unknown)."""
-    for i in range(len(room)):
-        r = room[i]
-        group[i] = r + 1 if (r >= 0 and r != lis_room) else 0
-        use_occ[i] = r < 0
-
-
-@njit(**_opts)
-def groups_sending(group, send, seen):
-    """How many distinct groups have a source with a non-zero send (seen (G,) bool scratch)."""
-    seen[:] = False
-    c = 0
-    for i in range(len(group)):
-        if send[i] > 0 and not seen[group[i]]:
-            seen[group[i]] = True
-            c += 1
-    return c
-
-
-@njit(**_opts)
-def live_rows(x, prev, live):
-    """live[g] = row g of x or of prev (the previous block) has a non-zero sample; returns how many are live."""
-    c = 0
-    for g in range(x.shape[0]):
-        on = False
-        for t in range(x.shape[1]):
-            if x[g, t] != 0.0 or prev[g, t] != 0.0:
-                on = True
-                break
-        live[g] = on
-        c += on
-    return c
-
-
-@njit(**_fast)
-def fdl_fill(X, curves, live, shaped, out):
-    """One frequency-domain delay-line row: out[f] = sum over live groups g of X[g, f] (times curves[g, f] when
-    shaped: the group's per-band coupling over the FFT bins)."""
-    out[:] = 0
-    for g in range(X.shape[0]):
-        if not live[g]:
-            continue
-        if shaped:
-            for f in range(X.shape[1]):
-                out[f] += X[g, f] * curves[g, f]
-        else:
-            for f in range(X.shape[1]):
-                out[f] += X[g, f]
-
-
-@njit(**_opts)
-def portal_curve(ratio, beta, bins, out):
-    """Per-ear gains over FFT bins for a tail part of which ``beta`` arrives from one direction: out[e, f] =
-    sum_b bins[b, f] sqrt(beta ratio[e, b]^2 + 1 - beta) (ratio (2, B): that direction's per-band ear gains over
-    the diffuse field's, normalised so that the two ears' mean power is 1; bins (B, F) the bands' interpolation
-    weights). The mean power of the two ears stays 1 in every band: a direction, no change of level."""
-    E, F = out.shape
-    nb = ratio.shape[1]
-    for e in range(E):
-        for f in range(F):
-            g = 0.0
-            for b in range(nb):
-                w = bins[b, f]
-                if w != 0.0:
-                    g += w * np.sqrt(beta * ratio[e, b] * ratio[e, b] + 1.0 - beta)
-            out[e, f] = g

@@ -8,8 +8,8 @@ import math
 
 import numpy as np
 
-from sonicverse_core.acoustics.kernels import (farther, groups_sending, late_groups, late_send, mix_ramped,
-                                               portal_curve, rows_moved)
+from sonicverse_core.acoustics.kernels import farther, rows_moved
+from sonicverse_core.acoustics.late_kernels import groups_sending, late_groups, late_send, mix_ramped, portal_curve
 from sonicverse_core.acoustics.probes import SPEED_OF_SOUND
 from sonicverse_core.acoustics.sources import grown
 from sonicverse_core.acoustics.state import PerSource

@@ -68,7 +68,7 @@ class FDNReverb:
     def process(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """x : (block,) mono send -> (2, block) float64 diffuse tail (compiled per-sample loop); written into
         ``out`` when given (then nothing is allocated)."""
-        from sonicverse_core.acoustics.kernels import fdn_process
+        from sonicverse_core.acoustics.late_kernels import fdn_process
 
         if out is None:
             out = np.empty((2, len(x)))
@@ -178,7 +178,7 @@ class ConvolutionReverb:
         self._w_set = False
         # compile (or load) the per-block kernels now: one first called in the first block with sound would stall a
         # real-time caller for as long as numba takes to compile it (the stream's watchdog calls that a lost device)
-        from sonicverse_core.acoustics.kernels import fdl_fill, live_rows
+        from sonicverse_core.acoustics.late_kernels import fdl_fill, live_rows
 
         live_rows(self._frame[:, B:], self._frame[:, :B], self._live)
         fdl_fill(self._X, self._curves, self._live, False, self.fdl[0])
@@ -208,7 +208,8 @@ class ConvolutionReverb:
         ``shapes_key``: a value that changes whenever ``shapes`` does (the curves are rebuilt then; without a key,
         every block). ``ears`` (2, block + 1): per-ear gains over the FFT's bins applied to the tail (smooth in
         frequency: a direction's level differences). With ``out`` and a key, a block allocates nothing."""
-        from sonicverse_core.acoustics.kernels import fdl_fill, fdl_mac, live_rows, mix_ramped, shift_left
+        from sonicverse_core.acoustics.kernels import shift_left
+        from sonicverse_core.acoustics.late_kernels import fdl_fill, fdl_mac, live_rows, mix_ramped
 
         B, P = self.B, self.P
         x = x.reshape(-1, B)
