@@ -32,6 +32,7 @@ class OracleFollower(Agent):
     def reset(self, env, obs, info):
         super().reset(env, obs, info)
         self.path, self.k, self.plan_at = None, 0, -1
+        self._field, self._field_key = None, None  # the person's geodesic field, per cell they stand in
 
     def act(self, obs, info):
         priv = self.env.privileged()
@@ -81,7 +82,7 @@ class OracleFollower(Agent):
         xy = g.center_of(cells)
         far = np.min(np.linalg.norm(xy[:, None] - ahead[None, 1:], axis=2), axis=1)
         key = tuple(g.cell_of(person.pos)[0])
-        if getattr(self, "_field_key", None) != key:  # the person's geodesic field, per cell they stand in
+        if self._field_key != key:
             self._field, self._field_key = g.distance_field(person.pos), key
         dp = g.geodesic_from_field(self._field, xy)  # along the floor: a spot round a corner is farther
         ok = (far >= 1.1) & (dp >= 1.0) & (dp <= 2.2) & (np.linalg.norm(xy - p, axis=1) <= 2.5)
