@@ -229,11 +229,13 @@ def test_round_trip_is_two_server_periods_and_the_mic_reaches_the_robot(running)
     # the robot renders in its own process, in step with the stream: the microphone's bursts reach its ears at one
     # lag (a robot block rendered out of step, or a skipped one, would move it by 256 samples). Seen once in ~10
     # runs: the first burst after the start gave a spurious peak (59 samples, shorter than the flight time), so one
-    # burst may disagree
+    # burst may disagree. The ear's response has lobes a few samples apart (the HRTF): a burst's correlation may peak
+    # on either (seen: 316 and 325 samples), so lags agree within 32 samples, far below a block's 256
     assert eng.info["robot_listeners"] == "own process"
     n = min(len(back), heard.shape[1])
     robot_lags = burst_lags(back[:n], heard[0, :n], first, period, max_lag=2048)
-    agree = np.unique(robot_lags[np.isfinite(robot_lags)], return_counts=True)[1].max(initial=0)
+    ok = robot_lags[np.isfinite(robot_lags)]
+    agree = max((int(np.sum(np.abs(ok - x) <= 32)) for x in ok), default=0)
     assert agree >= 2 and agree >= len(robot_lags) - 1, (robot_lags, eng.telemetry())
     tele = eng.telemetry()
     assert tele["robot_blocks"] >= tele["callbacks"] - 4  # the robots keep up with the stream

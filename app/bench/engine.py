@@ -70,18 +70,19 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = Fal
 
 def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:apartment", seed: int = 0,
                 sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = False,
-                reverb: str = "convolution") -> dict:
+                reverb: str = "convolution", er_images: str = "room", er_order: int = 1) -> dict:
     """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
     reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how
     many room tails it convolves and from how many rooms sources send to it), with the listener walking and turning every block (so every source's direction, delay and
     occlusion changes), against a naive reference in the same run: per source and ear, a full scipy convolution of
     the block with a 0.5 s binaural room impulse response (overlap-add). ``per_room``: probes baked per room and
-    the rooms' decays coupled (``BakeConfig.per_room``); ``reverb``: "convolution" or "fdn"."""
+    the rooms' decays coupled (``BakeConfig.per_room``); ``reverb``: "convolution" or "fdn"; ``er_images``,
+    ``er_order``: the early reflections' geometry and order (``RenderConfig``)."""
     from scipy.signal import oaconvolve
 
     from sonicverse_core.acoustics.renderer import RenderConfig
 
-    cfg = RenderConfig(sample_rate=sample_rate, block=block, reverb=reverb)
+    cfg = RenderConfig(sample_rate=sample_rate, block=block, reverb=reverb, er_images=er_images, er_order=er_order)
     r = _audio_scene(spec, n_sources, seed, cfg, per_room)
     lis = r.listeners[0]
     start = lis.position.copy()
@@ -115,7 +116,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     ref_frac = np.array(ref) / block_s
     return {
         "bench": "audio", "scene": spec, "sources": n_sources, "sample_rate": sample_rate, "block": block,
-        "per_room": per_room, "reverb": reverb,
+        "per_room": per_room, "reverb": reverb, "er_images": er_images, "er_order": er_order,
         "blocks": n_blocks, "subsystems": r.subsystems,
         "realtime_fraction": {"median": round(float(np.median(frac)), 4), "p99": round(float(np.percentile(frac, 99)), 4),
                               "max": round(float(frac.max()), 4)},

@@ -115,7 +115,7 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
 
 
 def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
-          er_order: int = 1, per_room: bool = False) -> tuple[np.ndarray, float, float]:
+          er_order: int = 1, per_room: bool = False, er_images: str = "room") -> tuple[np.ndarray, float, float]:
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
     from sonicverse_core.scene.spec import load_scene
@@ -123,7 +123,8 @@ def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
     scene = load_scene(spec)
     t0 = time.perf_counter()
     probes = scene_probes(scene, BakeConfig(scattering=scattering, per_room=per_room))
-    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order), probes=probes)
+    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order,
+                                                          er_images=er_images), probes=probes)
     t_bake = time.perf_counter() - t0
     x = np.zeros(int(seconds * FS), np.float32)
     x[0] = 1.0
@@ -242,16 +243,17 @@ def _sealed(scattering: str = "stochastic", per_room: bool = False) -> dict:
 
 
 def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0,
-                   scattering: str = "stochastic", er_order: int = 1, per_room: bool = False) -> dict:
+                   scattering: str = "stochastic", er_order: int = 1, per_room: bool = False,
+                   er_images: str = "room") -> dict:
     """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");
-    ``er_order``: our image sources' order (``RenderConfig.er_order``); ``per_room``: probes baked per room, the
+    ``er_order``, ``er_images``: our image sources' order and geometry (``RenderConfig``); ``per_room``: probes baked per room, the
     rooms' decays coupled (``BakeConfig.per_room``)."""
     from sonicverse_core.acoustics.probes import BakeConfig
     from sonicverse_core.progress import progress
 
     from sonicverse_core.acoustics.renderer import RenderConfig
 
-    BakeConfig(scattering=scattering), RenderConfig(er_order=er_order)  # checked before anything runs
+    BakeConfig(scattering=scattering), RenderConfig(er_order=er_order, er_images=er_images)  # checked before anything runs
 
     cases, seconds = [], 3.0
     todo = list(_cases())
@@ -263,7 +265,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed,
                               floors=mats[3] if len(mats) > 3 else None)
         t_peer = time.perf_counter() - t0
-        h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order, per_room)
+        h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images)
         ours, peer = room_parameters(h), room_parameters(h_peer)
         row = {"case": name, "scene": spec, "source": list(src), "listener": list(lis), "bands_hz": list(BANDS),
                "ours": ours, "pyroomacoustics": peer, "vs_pyroomacoustics": _errors(ours, peer, "diffuse" in name),
@@ -277,7 +279,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
            f"{rays} rays, receiver radius 0.5 m, seed {seed})", "sample_rate": FS, "scattering": scattering, "er_order": er_order,
-           "per_room": per_room,
+           "er_images": er_images, "per_room": per_room,
            "cases": cases,
            "sealed": sealed,
            "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}

@@ -131,6 +131,10 @@ def add_audio_commands(sub, bench_sub) -> None:
     ba.add_argument("--per-room", action="store_true", help=per_room_help)
     ba.add_argument("--reverb", choices=("convolution", "fdn"), default="convolution",
                     help="late reverb: partitioned convolution (default) or the cheaper FDN")
+    ba.add_argument("--er-images", choices=("room", "box"), default="room",
+                    help="early reflections off the listener's room's own walls (default) or its probe's box")
+    ba.add_argument("--er-order", type=int, choices=(1, 2), default=1,
+                    help="early reflections' image-source order (default: %(default)s)")
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
@@ -158,6 +162,8 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--er-order", type=int, choices=(1, 2), default=1,
                     help="our early reflections' image-source order (default: %(default)s)")
     bf.add_argument("--json", action="store_true", help="(always JSON)")
+    bf.add_argument("--er-images", choices=("room", "box"), default="room",
+                    help="early reflections off the listener's room's own walls (default) or its probe's box")
     bf.set_defaults(func=cmd_bench_fidelity)
 
 
@@ -165,7 +171,8 @@ def cmd_bench_audio(a) -> int:
     from app.bench.engine import bench_audio
 
     print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block,
-                                 per_room=a.per_room, reverb=a.reverb)))
+                                 per_room=a.per_room, reverb=a.reverb, er_images=a.er_images,
+                                 er_order=a.er_order)))
     return 0
 
 
@@ -179,5 +186,6 @@ def cmd_bench_accuracy(a) -> int:
 def cmd_bench_fidelity(a) -> int:
     from app.bench.fidelity import bench_fidelity
 
-    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room)))
+    print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
+                                    a.er_images)))
     return 0

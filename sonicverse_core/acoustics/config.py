@@ -18,6 +18,7 @@ class RenderConfig:
     occlusion: bool = True
     early_reflections: bool = True
     er_order: int = 1  # image-source order (1: 6 images per source, 2: 24)
+    er_images: str = "room"  # room: images of the listener's room's own walls | box: of its probe's proxy box
     late_reverb: bool = True
     reverb: str = "convolution"  # convolution (synthesised binaural tails, exact per band) | fdn (cheaper)
     rolloff: str = "log"  # log | linear | none
@@ -46,6 +47,8 @@ class RenderConfig:
             raise ConfigError("hrtf_interpolation must be barycentric or nearest")
         if self.er_order not in (1, 2):
             raise ConfigError("er_order must be 1 or 2")
+        if self.er_images not in ("room", "box"):
+            raise ConfigError("er_images must be room or box")
         if self.reverb not in ("fdn", "convolution"):
             raise ConfigError("reverb must be fdn or convolution")
         if not (0 <= self.occlusion_smoothing < 1) or not (0 <= self.near_field_gain <= 9):
