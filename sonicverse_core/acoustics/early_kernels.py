@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from sonicverse_core.acoustics.kernels import distance_gain_1
+from sonicverse_core.acoustics.kernels import _sh9, distance_gain_1
 
 _opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 
@@ -75,7 +75,6 @@ def room_image_taps(src, mute, seqs, edges, normal, table, zwall, first, zf, zc,
     E = edges.shape[0]
     T, Z = table.shape[1], table.shape[2]
     order = seqs.shape[1]
-    s3, s15, s5h = np.sqrt(3.0), np.sqrt(15.0), np.sqrt(5.0) / 2
     for i in range(n):
         here = False
         if not mute[i]:
@@ -161,19 +160,7 @@ def room_image_taps(src, mute, seqs, edges, normal, table, zwall, first, zf, zc,
                 continue
             gain[i, k] = g
             delay[i, k] = min(d, D) / c_sound + bulk
-            inv = 1.0 / max(d, 1e-9)
-            x = (R[0, 0] * v0 + R[0, 1] * v1 + R[0, 2] * v2) * inv
-            y = (R[1, 0] * v0 + R[1, 1] * v1 + R[1, 2] * v2) * inv
-            z = (R[2, 0] * v0 + R[2, 1] * v1 + R[2, 2] * v2) * inv
-            Y[i, k, 0] = 1.0
-            Y[i, k, 1] = s3 * y
-            Y[i, k, 2] = s3 * z
-            Y[i, k, 3] = s3 * x
-            Y[i, k, 4] = s15 * x * y
-            Y[i, k, 5] = s15 * y * z
-            Y[i, k, 6] = s5h * (3 * z * z - 1)
-            Y[i, k, 7] = s15 * x * z
-            Y[i, k, 8] = s15 / 2 * (x * x - y * y)
+            _sh9(R, v0, v1, v2, d, Y[i, k])
             if g_prev[i, k] == 0.0:  # appearing: start where it is
                 d_prev[i, k] = delay[i, k]
                 for c in range(9):

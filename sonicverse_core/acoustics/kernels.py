@@ -249,7 +249,6 @@ def image_taps(src, lo, hi, q, m, amp, lis, R, mode, d0, D, near_k, occ, bulk, c
     (500 Hz - 2 kHz) mean scales the images. Sources more than 0.5 m outside the box get no images (gain 0); those
     within that margin are clamped into it."""
     n, K = delay.shape
-    s3, s15, s5h = np.sqrt(3.0), np.sqrt(15.0), np.sqrt(5.0) / 2
     for i in range(n):
         inside = True
         for a in range(3):
@@ -269,19 +268,27 @@ def image_taps(src, lo, hi, q, m, amp, lis, R, mode, d0, D, near_k, occ, bulk, c
             g = distance_gain_1(d, mode, d0, D, near_k) * amp[k] * (occ[i, 4] + occ[i, 5] + occ[i, 6]) / 3.0
             gain[i, k] = g if g >= 1e-4 else 0.0  # below -80 dB: left out
             delay[i, k] = min(d, D) / c_sound + bulk
-            inv = 1.0 / max(d, 1e-9)
-            x = (R[0, 0] * v0 + R[0, 1] * v1 + R[0, 2] * v2) * inv
-            y = (R[1, 0] * v0 + R[1, 1] * v1 + R[1, 2] * v2) * inv
-            z = (R[2, 0] * v0 + R[2, 1] * v1 + R[2, 2] * v2) * inv
-            Y[i, k, 0] = 1.0
-            Y[i, k, 1] = s3 * y
-            Y[i, k, 2] = s3 * z
-            Y[i, k, 3] = s3 * x
-            Y[i, k, 4] = s15 * x * y
-            Y[i, k, 5] = s15 * y * z
-            Y[i, k, 6] = s5h * (3 * z * z - 1)
-            Y[i, k, 7] = s15 * x * z
-            Y[i, k, 8] = s15 / 2 * (x * x - y * y)
+            _sh9(R, v0, v1, v2, d, Y[i, k])
+
+
+@njit(**_opts)
+def _sh9(R, v0, v1, v2, d, y9):
+    """The 2nd-order N3D spherical harmonics (y9, 9) of the world direction (v0, v1, v2) / d in the head frame (R:
+    world -> head)."""
+    s3, s15, s5h = np.sqrt(3.0), np.sqrt(15.0), np.sqrt(5.0) / 2
+    inv = 1.0 / max(d, 1e-9)
+    x = (R[0, 0] * v0 + R[0, 1] * v1 + R[0, 2] * v2) * inv
+    y = (R[1, 0] * v0 + R[1, 1] * v1 + R[1, 2] * v2) * inv
+    z = (R[2, 0] * v0 + R[2, 1] * v1 + R[2, 2] * v2) * inv
+    y9[0] = 1.0
+    y9[1] = s3 * y
+    y9[2] = s3 * z
+    y9[3] = s3 * x
+    y9[4] = s15 * x * y
+    y9[5] = s15 * y * z
+    y9[6] = s5h * (3 * z * z - 1)
+    y9[7] = s15 * x * z
+    y9[8] = s15 / 2 * (x * x - y * y)
 
 
 @njit(**_opts)
