@@ -233,7 +233,7 @@ class EarlyReflections:
         cfg, scene, probes = r.cfg, r.scene, r.probes
         B, fs = cfg.block, cfg.sample_rate
         # rooms imaged in their own walls, each with the rooms it opens into
-        self.room_images, self.walls = {}, []
+        self.room_images, self.walls, self._doors, self._door_poses = {}, [], [], []
         self._version = scene.dynamic_version if scene is not None else 0
         if cfg.er_images == "room" and scene is not None and scene.rooms:
             from sonicverse_core.scene.model import Door
@@ -247,8 +247,9 @@ class EarlyReflections:
                     from sonicverse_core.geometry.raycast import SceneRayCaster
 
                     caster = SceneRayCaster(scene)
-                doors = [o for o in scene.objects if isinstance(o, Door)]
-                self.walls = [RoomWalls(room, caster, doors) for room in rooms]
+                self._doors = [o for o in scene.objects if isinstance(o, Door)]
+                self._door_poses = [d.pose.tobytes() for d in self._doors]
+                self.walls = [RoomWalls(room, caster, self._doors) for room in rooms]
                 # a footprint that is not where the walls are (a bounding box of a mesh scene): no room images
                 self.walls = [w for w in self.walls if np.mean(w.table > 0) >= 0.5]
                 rooms = [w.room for w in self.walls]
@@ -350,12 +351,15 @@ class EarlyReflections:
         pd, pg, pY = st.delay[:n], st.gain[:n], st.Y[:n]
         g = st.room
         if g is not None:
-            if r.scene.dynamic_version != self._version:  # a door moved: its wall samples are cast again
+            if r.scene.dynamic_version != self._version:  # something moved; if a door did, its walls are cast again
                 self._version = r.scene.dynamic_version
-                for w in self.walls:
-                    w.refresh()
-                for ri in self.room_images.values():
-                    ri.update()
+                doors = [d.pose.tobytes() for d in self._doors]
+                if doors != self._door_poses:
+                    self._door_poses = doors
+                    for w in self.walls:
+                        w.refresh()
+                    for ri in self.room_images.values():
+                        ri.update()
             M = len(g.seqs)
             room_image_taps(r._pos[:n], ls.mute[:n], g.seqs, g.edges, g.normal, g.table, g.zwall, g.first, g.zf,
                             g.zc, g.rf, g.rc, lis.position, ls.R, *r._rolloff, self.bulk, SPEED_OF_SOUND, st.pts,
