@@ -222,7 +222,27 @@ def test_a_rooms_own_walls_reflect_as_their_materials_and_its_doorway_only_when_
     scene.dynamic_version += 1
     w.refresh()
     assert np.all(w.table[part][door_at] == pytest.approx(r[ref.DOOR]))  # shut: the leaf reflects
-    assert w.opens_into([west, east]) == {}
+    assert list(w.opens_into([west, east])) == [1]  # the doorway still joins the rooms (to be opened again)
+
+
+def test_a_door_shut_when_the_renderer_is_built_lets_the_next_rooms_images_through_once_opened():
+    scene = load_scene("builtin:two-rooms?door=closed")
+    r = AcousticRenderer(scene, RenderConfig(late_reverb=False, output="mono"), probes=scene_probes(scene))
+    r.add_source(NOISE, position=(2.0, 2.6, 1.5))
+    r.add_listener((6.0, 1.7, 1.5))
+    r.render(0.1)
+    st = r._state[0].early
+    assert len(st.room.walls) == 2 and np.count_nonzero(st.gain[0]) == 0  # shut: nothing through the doorway
+    scene.objects[0].set_open(1.0)
+    scene.dynamic_version += 1
+    r.render(0.1)
+    opened = load_scene("builtin:two-rooms?door=open")  # the same images as a renderer built with it open
+    r2 = AcousticRenderer(opened, RenderConfig(late_reverb=False, output="mono"), probes=scene_probes(opened))
+    r2.add_source(NOISE, position=(2.0, 2.6, 1.5))
+    r2.add_listener((6.0, 1.7, 1.5))
+    r2.render(0.1)
+    assert np.count_nonzero(st.gain[0]) > 0
+    np.testing.assert_allclose(st.gain[0], r2._state[0].early.gain[0], rtol=1e-9)
 
 
 def test_the_next_rooms_walls_reflect_through_the_doorway_until_the_door_shuts():

@@ -265,13 +265,12 @@ def _early_geometry(quick: bool):
     corners = np.array([(0, 0), (6, 0), (6, 3), (3, 3), (3, 6), (0, 6)], float).T
     sos = butter(6, 4000, fs=fs, output="sos")
     pairs = [((5.0, 1.5, 1.5), (1.5, 1.5, 1.5)), ((5.0, 1.5, 1.5), (1.5, 5.0, 1.5))]  # in view, round the corner
+    mats = {name: pra.Material(float(1 - wall_reflectance([m])[0] ** 2))
+            for name, m in (("walls", ref.WALLS), ("floor", ref.FLOOR), ("ceiling", ref.CEILING))}
     rows = []
     for order in ((1,) if quick else (1, 2)):
         refs = []
         for src, lis in pairs:
-            mats = {}
-            for name, m in (("walls", ref.WALLS), ("floor", ref.FLOOR), ("ceiling", ref.CEILING)):
-                mats[name] = pra.Material(float(1 - wall_reflectance([m])[0] ** 2))
             hs = []
             for o in (order, 0):  # the reflections only: its images of this order less the direct sound
                 room = pra.Room.from_corners(corners, fs=fs, max_order=o, materials=mats["walls"],

@@ -79,8 +79,9 @@ class RoomWalls:
     ceiling), plan segments ``edges`` (E, 4) with outward ``normal`` (E, 2), each wall's amplitude reflection factor
     sampled along and up it by rays (``table`` (E, T, Z): 0 where the rays meet nothing, an opening such as a
     doorway), the floor's and ceiling's (``rf``, ``rc``). Samples within reach of a door leaf (``near_door``) are
-    cast again through the scene's dynamic geometry whenever it changes (:meth:`refresh`): a closed door reflects
-    and blocks, an open one lets sound through."""
+    cast again through the scene's dynamic geometry when a door moves (:meth:`refresh`): a closed door reflects
+    and blocks, an open one lets sound through. Where the room opens into others (:meth:`opens_into`) comes from
+    the static structure alone, so a door shut when the renderer is built still joins its rooms once opened."""
 
     def __init__(self, room, caster, doors=()):
         from sonicverse_core.scene.materials import MATERIAL_NAMES
@@ -109,6 +110,7 @@ class RoomWalls:
             near |= np.hypot(*(self._o[:, :2] - np.asarray(door.hinge, float)).T) < door.width + 0.5
         self.near_door = np.flatnonzero(near)
         self.table = self._cast(np.arange(len(self._o)), dynamic=False).reshape(E, T, Z)
+        self._open = self.table.reshape(-1) == 0  # openings of the structure, whatever state the doors are in
         self.refresh()
         # floor and ceiling: rays down and up from points inside the footprint
         lo, hi = poly.min(0), poly.max(0)
@@ -124,10 +126,7 @@ class RoomWalls:
             setattr(self, side, float(np.mean(self._refl[np.where(h.hit, h.material, -1)])))
 
     def _cast(self, idx: np.ndarray, dynamic: bool) -> np.ndarray:
-        if dynamic:
-            h = self.caster.first_hit(self._o[idx], self._d[idx], 0.6)
-        else:
-            h = self.caster.static.first_hit(self._o[idx], self._d[idx], 0.6)
+        h = self.caster.first_hit(self._o[idx], self._d[idx], 0.6, include_dynamic=dynamic)
         return self._refl[np.where(h.hit & (h.distance <= 0.35), h.material, -1)]
 
     def refresh(self) -> None:
@@ -136,10 +135,10 @@ class RoomWalls:
             self.table.reshape(-1)[self.near_door] = self._cast(self.near_door, dynamic=True)
 
     def opens_into(self, rooms) -> dict:
-        """{index in ``rooms``: open area (m^2)} of the rooms this one's openings lead into (0.3 m beyond each
-        open sample of its walls)."""
+        """{index in ``rooms``: open area (m^2)} of the rooms this one's openings in the static structure (doorways,
+        open or shut) lead into (0.3 m beyond each open sample of its walls)."""
         T, Z = WALL_SAMPLES
-        open_ = self.table.reshape(-1) == 0
+        open_ = self._open
         beyond = self._o[:, :2] + 0.55 * self._d[:, :2]
         cell = (np.linalg.norm(self.edges[:, 2:] - self.edges[:, :2], axis=1) / T * (self.zc - self.zf) / Z)
         area = np.repeat(cell, T * Z)
