@@ -179,8 +179,10 @@ def test_late_send():
     group = np.array([0, 1, 1])
     out = np.empty((2, B), np.float32)
     pd = p_delay.copy()
-    LK.late_send(ring, 40, dist, occ, use_occ, group, 0.6, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012)
-    s = 10 ** (-0.174 * dist / 0.6 / 20 - 3 * 0.012 / 0.6) * np.where(use_occ, np.sqrt(occ[:, 4:7].mean(1)), 1.0)
+    rt = np.array([0.6, 1.4])  # each group's decay: the source's room's
+    LK.late_send(ring, 40, dist, occ, use_occ, group, rt, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012)
+    T = rt[group]
+    s = 10 ** (-0.174 * dist / T / 20 - 3 * 0.012 / T) * np.where(use_occ, np.sqrt(occ[:, 4:7].mean(1)), 1.0)
     s0 = np.where(fresh, s, p_send)
     r = (np.arange(B) + 1) / B
     ramp = s0[:, None] + (s - s0)[:, None] * r

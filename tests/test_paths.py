@@ -186,6 +186,29 @@ def test_bench_fidelity_runs_both_simulators_and_the_sealed_rooms_meet_the_mass_
     assert d["sealed"]["met"]
 
 
+def test_the_peers_two_rooms_have_our_doorway_with_a_lintel_over_it():
+    """The peer's two rooms are built as ours are: the partition's doorway 0.9 x 2.1 m, the wall above it solid (a
+    straight path through the doorway at 1.5 m is open, at 2.6 m it meets the lintel)."""
+    import pyroomacoustics as pra
+
+    from app.bench.fidelity import _cases, _pra_floors, _pra_material
+
+    name, _, corners, H, mats, *_ = next(c for c in _cases() if c[0].startswith("two rooms, open door"))
+    walls, floor, ceiling, floors, lintels = mats
+    seen = {}
+    for z in (1.5, 2.6):
+        room = pra.Room.from_corners(np.array(corners, float).T, fs=16000, max_order=0,
+                                     materials=[_pra_material(w) for w in walls])
+        room.extrude(H, materials={"floor": _pra_material(floor), "ceiling": _pra_material(ceiling)})
+        room = _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels)
+        room.max_order = 0
+        room.add_source([2.0, 2.0, z])
+        room.add_microphone(np.array([[6.0], [2.0], [z]]))
+        room.image_source_model()
+        seen[z] = bool(room.visibility[0][0].any())
+    assert seen == {1.5: True, 2.6: False}
+
+
 def test_bench_accuracy_scattering_knob_parts_eyring_and_the_peer():
     """README: stochastic scattering is the closer to Eyring in a uniform room, vector-based scattering (the peer's
     own model) the closer to pyroomacoustics under an absorbing ceiling."""

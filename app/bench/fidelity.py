@@ -70,10 +70,12 @@ def _pra_material(name: str):
                         scattering=m.scattering)
 
 
-def _pra_floors(room, corners, H, floors, walls, floor, ceiling):
+def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None):
     """The extruded room's walls with its floor and ceiling replaced by one polygon per entry of ``floors``
-    ((xy corners, floor material, ceiling material)); a material's coefficients are taken from an outline wall of
-    that material (pyroomacoustics resamples them to its bands when it builds those)."""
+    ((xy corners, floor material, ceiling material)), and a box hung from the ceiling per entry of ``lintels``
+    ((x0, x1, y0, y1, z0, material): its underside at z0 and its two faces across x, as over a doorway); a
+    material's coefficients are taken from an outline wall of that material (pyroomacoustics resamples them to its
+    bands when it builds those)."""
     import pyroomacoustics as pra
 
     names = (walls if isinstance(walls, list) else [walls] * len(corners)) + [floor, ceiling]
@@ -84,20 +86,30 @@ def _pra_floors(room, corners, H, floors, walls, floor, ceiling):
             raise ValueError(f"no outline wall, floor or ceiling of {name} to take its coefficients from")
         return known[name]
 
-    out = list(room.walls[:len(corners)])
-    for xy, fmat, cmat in floors:
-        xy = np.asarray(xy, float)
-        for z, mat, up in ((0.0, fmat, False), (H, cmat, True)):
-            pts = np.c_[xy, np.full(len(xy), z)]
-            n = np.cross(pts[1] - pts[0], pts[2] - pts[1])
-            if (n[2] > 0) != up:  # outward normals: down for a floor, up for a ceiling
-                pts = pts[::-1]
-            a, sc = coeffs(mat)
-            out.append(pra.wall_factory(pts.T, a, sc, "ceiling" if up else "floor"))
+    def face(pts, outward, mat, name):  # outward: into the solid (pyroomacoustics' walls face away from the air)
+        pts = np.asarray(pts, float)
+        if np.dot(np.cross(pts[1] - pts[0], pts[2] - pts[1]), outward) < 0:
+            pts = pts[::-1]
+        a, sc = coeffs(mat)
+        return pra.wall_factory(pts.T, a, sc, name)
+
+    if floors:
+        out = list(room.walls[:len(corners)])
+        for xy, fmat, cmat in floors:
+            xy = np.asarray(xy, float)
+            for z, mat, up in ((0.0, fmat, False), (H, cmat, True)):
+                out.append(face(np.c_[xy, np.full(len(xy), z)], (0, 0, 1 if up else -1), mat,
+                                "ceiling" if up else "floor"))
+    else:
+        out = list(room.walls)
+    for x0, x1, y0, y1, z0, mat in lintels or ():
+        out.append(face([(x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0)], (0, 0, 1), mat, "lintel"))
+        for x, sign in ((x0, 1), (x1, -1)):
+            out.append(face([(x, y0, z0), (x, y1, z0), (x, y1, H), (x, y0, H)], (sign, 0, 0), mat, "lintel"))
     return pra.Room(out, fs=room.fs, max_order=room.max_order, air_absorption=True, ray_tracing=True)
 
 
-def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0, floors=None):
+def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0, floors=None, lintels=None):
     import pyroomacoustics as pra
 
     pra.random.seed(seed)  # its ray tracing draws from NumPy's and C++'s generators: the same run, the same numbers
@@ -105,8 +117,8 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
     room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=mats,
                                  ray_tracing=True, air_absorption=True)
     room.extrude(H, materials={"floor": _pra_material(floor), "ceiling": _pra_material(ceiling)})
-    if floors:  # rooms with floors and ceilings of their own: the outline's floor and ceiling cut per room
-        room = _pra_floors(room, corners, H, floors, walls, floor, ceiling)
+    if floors or lintels:  # rooms with floors and ceilings of their own; the wall over a doorway
+        room = _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels)
     room.set_ray_tracing(n_rays=rays, receiver_radius=0.5)
     room.add_source(list(src))
     room.add_microphone(np.array(lis, float)[:, None])
@@ -143,7 +155,7 @@ SHOEBOXES = {
 }
 L_ROOM = [(0, 0), (6, 0), (6, 3), (3, 3), (3, 6), (0, 6)]
 TWO_ROOMS = [(0, 0), (3.95, 0), (3.95, 1.55), (4.05, 1.55), (4.05, 0), (8, 0), (8, 4), (4.05, 4), (4.05, 2.45),
-             (3.95, 2.45), (3.95, 4), (0, 4)]  # the partition as a 0.1 m notch; its doorway runs up to the ceiling
+             (3.95, 2.45), (3.95, 4), (0, 4)]  # the partition as a 0.1 m notch, cut through to the ceiling...
 
 
 def _cases():
@@ -157,8 +169,10 @@ def _cases():
         yield name, spec, corners, H, (walls, floor, ceiling), src, lis, dims
     mats = (ref.WALLS, ref.FLOOR, ref.CEILING)
     # the partition's faces (walls 1-3 and 7-9 of the outline) are the partition's material, as in our scene
+    # ... and the wall over the doorway (ours is 0.9 x 2.1 m): the partition's lintel
+    lintel = [(3.95, 4.05, 1.55, 2.45, ref.DOOR_HEIGHT, ref.PARTITION)]
     two = ([ref.PARTITION if k in (1, 2, 3, 7, 8, 9) else ref.WALLS for k in range(len(TWO_ROOMS))], ref.FLOOR,
-           ref.CEILING)
+           ref.CEILING, None, lintel)
     yield "L-room, line of sight", "builtin:l-room", L_ROOM, 3.0, mats, (5.0, 1.5, 1.5), (1.5, 1.5, 1.5), None
     yield "L-room, round the corner", "builtin:l-room", L_ROOM, 3.0, mats, (5.0, 1.5, 1.5), (1.5, 5.0, 1.5), None
     yield ("two rooms, open door, line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, two,
@@ -173,10 +187,10 @@ def _cases():
               ([(3.95, 1.55), (4.05, 1.55), (4.05, 2.45), (3.95, 2.45)], ref.FLOOR, ref.CEILING),
               ([(4.05, 0), (8, 0), (8, 4), (4.05, 4)], ref.FLOOR, ref.CEILING)]
     spec = f"builtin:two-rooms?door=open&west={dead}"
-    yield ("dead room beside a live one, both in the dead", spec, TWO_ROOMS, 3.0, (walls, ref.FLOOR, ref.CEILING, floors),
-           (1.2, 1.2, 1.5), (2.8, 3.0, 1.5), None)
+    yield ("dead room beside a live one, both in the dead", spec, TWO_ROOMS, 3.0,
+           (walls, ref.FLOOR, ref.CEILING, floors, lintel), (1.2, 1.2, 1.5), (2.8, 3.0, 1.5), None)
     yield ("dead room beside a live one, source in the live", spec, TWO_ROOMS, 3.0,
-           (walls, ref.FLOOR, ref.CEILING, floors), (6.0, 1.0, 1.5), (1.0, 0.6, 1.5), None)
+           (walls, ref.FLOOR, ref.CEILING, floors, lintel), (6.0, 1.0, 1.5), (1.0, 0.6, 1.5), None)
 
 
 def _theory_shoebox(dims, walls, floor, ceiling, src, lis) -> dict:
@@ -263,7 +277,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         walls, floor, ceiling = mats[:3]
         t0 = time.perf_counter()
         h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed,
-                              floors=mats[3] if len(mats) > 3 else None)
+                              floors=mats[3] if len(mats) > 3 else None, lintels=mats[4] if len(mats) > 4 else None)
         t_peer = time.perf_counter() - t0
         h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images)
         ours, peer = room_parameters(h), room_parameters(h_peer)

@@ -32,7 +32,7 @@ class LateState(PerSource):
     __slots__ = ("send", "send_delay", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow", "ears", "portal",
                  "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono", "fdn_out", "key",
                  "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes", "fdn_rt",
-                 "fdn_slow", "mid_own", "mid_slow", "fdn_key")
+                 "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send")
     ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("group", (), np.int64, 0),
             ("use_occ", (), bool, True), ("group_moved", (), bool, False))
 
@@ -44,6 +44,7 @@ class LateState(PerSource):
         self.portal_idx = -1
         self.level = None
         self.sends = np.zeros((groups, block), np.float32)
+        self.rt_send = np.full(groups, 0.5)  # per group the decay its sends' distance law uses (late_send)
         self.seen = np.zeros(groups, bool)
         self.shapes = np.ones((groups, len(BANDS)))
         self.shapes_key = self.key = self.params = self.modal_key = self.modal_w = self.modal_shapes = None
@@ -185,7 +186,8 @@ class LateReverb:
         group, use_occ, shapes = self._late_groups(st, n)
         self.r.stats["room_reverbs"] = st.room_reverbs
         sends = st.sends
-        late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, lo, st.send[:n],
+        st.rt_send.fill(lo)  # one decay for the whole space
+        late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, st.rt_send, st.send[:n],
                   st.send_delay[:n], fresh, sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
         lv0 = st.level if st.level is not None else level
@@ -217,11 +219,15 @@ class LateReverb:
         if st.modal_key != key:
             st.modal_w, st.modal_shapes = self._modal_mix(st, lis, w, split, lr)
             st.modal_key = key
+            # a source in another room: its energy decays in its own room while it travels (Barron's distance
+            # law with that room's decay, not the listener's: a dead room beside a live one hears the live one)
+            st.rt_send[1:] = split["own_rt"][:, 3:6].mean(1)
+            st.rt_send[0] = lo
             st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) + np.count_nonzero(st.modal_w[1] > 1e-4))
         self.r.stats["room_reverbs"] = st.room_reverbs
         sends = st.sends
-        late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, lo, st.send[:n],
-                  st.send_delay[:n], fresh, sends, float(self.r.cfg.sample_rate), SPEED_OF_SOUND, t_mix)
+        late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, st.rt_send,
+                  st.send[:n], st.send_delay[:n], fresh, sends, float(self.r.cfg.sample_rate), SPEED_OF_SOUND, t_mix)
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
         if st.fdn is not None:
             self._fdn_modal(st, split, lr, sends, out)

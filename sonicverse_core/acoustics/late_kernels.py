@@ -41,20 +41,21 @@ def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm, y):
 
 
 @njit(**_opts)
-def late_send(ring, w0, dist, occ, use_occ, group, rt_low, p_send, p_delay, fresh, out, fs, c_sound, t_mix):
+def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fresh, out, fs, c_sound, t_mix):
     """Sends to the late reverb, one per group of sources (out (G, B): the groups are the rooms the sources are in,
     which the renderer filters by their coupling to the listener's room): per source, its dry samples delayed by
     its travel time plus the mixing time (ring[i, w0 + t - D], D = round((dist / c + t_mix) fs): the tail starts
     after the direct sound and the early reflections; when D changes, the old and the new delay are crossfaded
     across the block, so a teleport sends no step into the reverb), scaled by 10^(-0.174 r / T / 20) (Barron & Lee:
-    the late level falls with distance) x 10^(-3 t_mix / T) (the decay before the tail starts), and, where the
+    the late level falls with distance) x 10^(-3 t_mix / T) (the decay before the tail starts), T the decay of the
+    source's group (rt_group (G,): the room the energy decays in while it travels), and, where the
     rooms are unknown (use_occ), by the square root of the mid-band transmission of the direct path; ramped from
     p_send. p_send and p_delay (int64) are updated."""
     B = out.shape[1]
     H = ring.shape[1]
     out[:] = 0.0
-    T = max(rt_low, 0.05)
     for i in range(len(dist)):
+        T = max(rt_group[group[i]], 0.05)
         s = 10.0 ** (-0.174 * dist[i] / T / 20.0 - 3.0 * t_mix / T)
         if use_occ[i]:
             o = 0.0
