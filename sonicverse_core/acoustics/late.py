@@ -219,9 +219,11 @@ class LateReverb:
         if st.modal_key != key:
             st.modal_w, st.modal_shapes = self._modal_mix(st, lis, w, split, lr)
             st.modal_key = key
-            # a source in another room: its energy decays in its own room while it travels (Barron's distance
-            # law with that room's decay, not the listener's: a dead room beside a live one hears the live one)
-            st.rt_send[1:] = split["own_rt"][:, 3:6].mean(1)
+            # a source in another room: Barron's distance law with the slower of its room's and the listener's
+            # room's own decays (the energy that crosses dies out as slowly as that), not the listener's alone:
+            # a dead room beside a live one hears the live one, and the live one hears the dead one
+            own = split["own_rt"][:, 3:6].mean(1)
+            np.maximum(own, own[lr], out=st.rt_send[1:])
             st.rt_send[0] = lo
             st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) + np.count_nonzero(st.modal_w[1] > 1e-4))
         self.r.stats["room_reverbs"] = st.room_reverbs
