@@ -342,3 +342,16 @@ def test_bench_accuracy_room_images_match_the_peers_polygon_image_sources():
     room, box = rows["room, order 1"], rows["box, order 1"]
     assert room["in view"] < 0.05, room
     assert room["in view"] < box["in view"] and room["round the corner"] < box["round the corner"], (room, box)
+
+
+def test_bench_accuracy_shoebox_images_match_the_peers_at_both_orders():
+    """README (bench accuracy, early-reflection order): in a shoebox our image sources match pyroomacoustics' of the
+    same order within 3% of the echogram's energy, at order 1 and 2. The peer's 10 Hz DC-removing high-pass is off
+    for the comparison (ours has none): with it, order 2 read 12.7%, and its setting is restored afterwards."""
+    import pyroomacoustics as pra
+
+    from app.bench.accuracy import _early
+
+    rows = {r["setting"]: r["error"] for r in _early(quick=True)["rows"]}
+    assert rows["order 1"] < 0.03 and rows["order 2"] < 0.03, rows
+    assert pra.constants.get("rir_hpf_enable")

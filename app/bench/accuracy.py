@@ -204,6 +204,25 @@ def _shoebox_probe(dims, material):
     return Probe(np.array(dims) / 2, ey, ey, np.zeros(3), np.array(dims, float), (material,) * 6, 1.0)
 
 
+def _raw_images(pra):
+    """pyroomacoustics' impulse responses without its DC-removing high-pass (a 10 Hz zero-phase filter applied to
+    every response by default): on a response of many positive image pulses it leaves a pedestal that takes 5-10% off
+    each pulse's energy once both are low-passed, which an echogram comparison counts as error (order 2 in a shoebox:
+    12.7% with it, 1.5% without). Ours has no such filter. Restores the setting afterwards."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def off():
+        was = pra.constants.get("rir_hpf_enable")
+        pra.constants.set("rir_hpf_enable", False)
+        try:
+            yield
+        finally:
+            pra.constants.set("rir_hpf_enable", was)
+
+    return off()
+
+
 def _early(quick: bool):
     import pyroomacoustics as pra
 
@@ -221,7 +240,8 @@ def _early(quick: bool):
                            air_absorption=False)
         room.add_source(src.tolist())
         room.add_microphone(lis.tolist())
-        room.compute_rir()
+        with _raw_images(pra):
+            room.compute_rir()
         h_ref = np.asarray(room.rir[0][0])  # pyroomacoustics scales image amplitudes as 1 / r, as we do
         delay = pra.constants.get("frac_delay_length") // 2  # its fractional-delay filters' latency
         h_ref = h_ref[delay:]
@@ -279,7 +299,8 @@ def _early_geometry(quick: bool):
                 room.extrude(3.0, materials={"floor": mats["floor"], "ceiling": mats["ceiling"]})
                 room.add_source(list(src))
                 room.add_microphone(np.array(lis, float)[:, None])
-                room.compute_rir()
+                with _raw_images(pra):
+                    room.compute_rir()
                 hs.append(np.asarray(room.rir[0][0])[pra.constants.get("frac_delay_length") // 2:])
             h = np.zeros(int(0.2 * fs))
             h[:min(len(hs[0]), len(h))] += hs[0][:len(h)]
