@@ -370,3 +370,19 @@ def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_
     assert seen[-1]["spectrogram"] == model.cfg.spec_shape and seen[-1]["depth"] == (*model.cfg.depth_hw, 1)
     with pytest.raises(ConfigError, match="unknown agent 'savi'"):
         FollowMe(agent="savi")
+
+
+def test_an_evaluations_episodes_depend_on_the_seed_and_index_alone(tmp_path):
+    """README (AudioGoal over 200 episodes): episode i of a seeded evaluation is the same whatever the number of
+    episodes, and a rerun repeats it step for step (the agent's Generator is seeded per episode too)."""
+    import csv
+
+    from app.tasks.evaluate import run_eval
+
+    kw = {"max_steps": 40}
+    run_eval("AudioGoal", "random", 2, seed=3, csv_path=tmp_path / "a.csv", env_kwargs=kw)
+    run_eval("AudioGoal", "random", 1, seed=3, csv_path=tmp_path / "b.csv", env_kwargs=kw)
+    run_eval("AudioGoal", "random", 1, seed=4, csv_path=tmp_path / "c.csv", env_kwargs=kw)
+    a, b, c = (list(csv.DictReader(open(tmp_path / f"{n}.csv"))) for n in "abc")
+    assert a[0] == b[0]
+    assert a[0]["episode_id"] != c[0]["episode_id"]
