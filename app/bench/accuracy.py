@@ -22,6 +22,7 @@ Knobs and references:
 """
 from __future__ import annotations
 
+import contextlib
 import time
 
 import numpy as np
@@ -204,23 +205,18 @@ def _shoebox_probe(dims, material):
     return Probe(np.array(dims) / 2, ey, ey, np.zeros(3), np.array(dims, float), (material,) * 6, 1.0)
 
 
+@contextlib.contextmanager
 def _raw_images(pra):
     """pyroomacoustics' impulse responses without its DC-removing high-pass (a 10 Hz zero-phase filter applied to
     every response by default): on a response of many positive image pulses it leaves a pedestal that takes 5-10% off
     each pulse's energy once both are low-passed, which an echogram comparison counts as error (order 2 in a shoebox:
     12.7% with it, 1.5% without). Ours has no such filter. Restores the setting afterwards."""
-    import contextlib
-
-    @contextlib.contextmanager
-    def off():
-        was = pra.constants.get("rir_hpf_enable")
-        pra.constants.set("rir_hpf_enable", False)
-        try:
-            yield
-        finally:
-            pra.constants.set("rir_hpf_enable", was)
-
-    return off()
+    was = pra.constants.get("rir_hpf_enable")
+    pra.constants.set("rir_hpf_enable", False)
+    try:
+        yield
+    finally:
+        pra.constants.set("rir_hpf_enable", was)
 
 
 def _early(quick: bool):

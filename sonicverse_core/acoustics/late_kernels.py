@@ -48,7 +48,8 @@ def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fr
     after the direct sound and the early reflections; when D changes, the old and the new delay are crossfaded
     across the block, so a teleport sends no step into the reverb), scaled by 10^(-0.174 r / T / 20) (Barron & Lee:
     the late level falls with distance) x 10^(-3 t_mix / T) (the decay before the tail starts), T the decay of the
-    source's group (rt_group (G,): the room the energy decays in while it travels), and, where the
+    source's group (rt_group (G,): the listener's room's for group 0; for a source in another room the slower of
+    its room's and the listener's, which the caller sets), and, where the
     rooms are unknown (use_occ), by the square root of the mid-band transmission of the direct path; ramped from
     p_send. p_send and p_delay (int64) are updated."""
     B = out.shape[1]
