@@ -175,8 +175,8 @@ def test_a_source_round_the_corner_keeps_its_rooms_reverberant_level():
 def test_bench_fidelity_runs_both_simulators_and_the_sealed_rooms_meet_the_mass_law(tmp_path):
     from app.bench.fidelity import bench_fidelity
 
-    d = bench_fidelity(rays=2000, quick=True, plot=str(tmp_path / "f.png"))
-    assert len(d["cases"]) == 3 and (tmp_path / "f.png").is_file()
+    d = bench_fidelity(rays=2000, quick=True, plot=str(tmp_path / "new" / "f.png"))  # its folder made when written
+    assert len(d["cases"]) == 3 and (tmp_path / "new" / "f.png").is_file()
     for c in d["cases"]:
         for k in ("G", "T30", "EDT", "C50", "DRR"):
             assert len(c["ours"][k]) == len(c["pyroomacoustics"][k]) == 5

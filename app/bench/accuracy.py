@@ -476,5 +476,8 @@ def _plot(knobs, path):
     for ax in axes.ravel()[len(knobs):]:
         ax.axis("off")
     fig.tight_layout()
+    from pathlib import Path
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)  # the argument's promise: created when writing
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -323,5 +323,8 @@ def _plot(cases: list, path: str) -> None:
         ax.set_title(k + " (250 Hz - 4 kHz)")
     axs[0].legend(fontsize=6)
     fig.tight_layout()
+    from pathlib import Path
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)  # the argument's promise: created when writing
     fig.savefig(path, dpi=90)
     plt.close(fig)
