@@ -268,6 +268,23 @@ def test_bad_recordings_and_bad_frames(tmp_path):
         assert len(s.trajectory) == 5 and any("frame 3" in e and "not finite" in e for e in s.events)
         assert len(s.recording.frames) == 5  # the skipped frame is not recorded: the recording replays
 
+    # SIGTERM's handler raises Interrupted wherever the main thread is: landing mid-step it stops the session, it
+    # is not skipped as a bad frame (a study run went on through three more trials after SIGTERM)
+    from sonicverse_core.errors import Interrupted
+
+    with VRSession(SessionConfig(scene=SHOEBOX, views=False, audio="none", robots=0), HeadlessBackend()) as s:
+        step = s.task.step
+
+        def terminated_at_3(session, f):
+            if f.index == 3:
+                raise Interrupted("terminated (SIGTERM)")
+            return step(session, f)
+
+        s.task.step = terminated_at_3
+        with pytest.raises(Interrupted):
+            s.run(frames=6)
+        assert len(s.trajectory) == 3
+
 
 def test_audio_only_mode_imports_no_renderer(tmp_path):
     code = (

@@ -22,7 +22,7 @@ import numpy as np
 from app.tasks.roam import FrameTask, FreeRoam
 from app.vr.frame import FrameInput, FrameStats, Recording
 from app.vr.transforms import head_pose, look_matrix
-from sonicverse_core.errors import ConfigError, SonicverseError
+from sonicverse_core.errors import ConfigError, Interrupted, SonicverseError
 
 WARMUP_FRAMES = 2  # not counted in the frame statistics (their intervals include the first render and audio block)
 SYNC_FRAMES = 90  # frames between syncs of the files a session writes as it runs (a second at 90 Hz)
@@ -182,6 +182,8 @@ class VRSession:
             return False
         try:
             self.step(f)
+        except Interrupted:  # SIGTERM landing mid-step (its handler raises this): stop, never skip it as a bad frame
+            raise
         except SonicverseError as exc:  # a bad input frame (NaN pose...) is reported and skipped: the session lives
             self.events.append(f"frame {f.index}: {exc}")
             return True
