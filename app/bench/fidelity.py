@@ -109,16 +109,25 @@ def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None):
     return pra.Room(out, fs=room.fs, max_order=room.max_order, air_absorption=True, ray_tracing=True)
 
 
-def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0, floors=None, lintels=None):
+def _pra_room(corners, H, walls, floor, ceiling, floors=None, lintels=None):
+    """The peer's room: the outline extruded to H with image sources to order 3 (ray tracing on), per-room floors
+    and ceilings and the wall over a doorway where given (:func:`_pra_floors`)."""
     import pyroomacoustics as pra
 
-    pra.random.seed(seed)  # its ray tracing draws from NumPy's and C++'s generators: the same run, the same numbers
     mats = [_pra_material(m) for m in walls] if isinstance(walls, list) else _pra_material(walls)
     room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=mats,
                                  ray_tracing=True, air_absorption=True)
     room.extrude(H, materials={"floor": _pra_material(floor), "ceiling": _pra_material(ceiling)})
     if floors or lintels:  # rooms with floors and ceilings of their own; the wall over a doorway
         room = _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels)
+    return room
+
+
+def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0, floors=None, lintels=None):
+    import pyroomacoustics as pra
+
+    pra.random.seed(seed)  # its ray tracing draws from NumPy's and C++'s generators: the same run, the same numbers
+    room = _pra_room(corners, H, walls, floor, ceiling, floors, lintels)
     room.set_ray_tracing(n_rays=rays, receiver_radius=0.5)
     room.add_source(list(src))
     room.add_microphone(np.array(lis, float)[:, None])
