@@ -29,11 +29,12 @@ class LateState(PerSource):
     own, ``conv_slow`` and its direction ``ears`` / ``portal``; or ``fdn``, and ``fdn_slow`` with rooms of their own); the probes' mix for where the listener
     stands (``params``, made at ``key``; its room ``lis_room``) and the level it was rendered at."""
 
-    __slots__ = ("send", "send_delay", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow", "ears", "portal",
+    __slots__ = ("send", "send_delay", "send_slow", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow", "ears", "portal",
                  "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono", "fdn_out", "key",
                  "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes", "fdn_rt",
-                 "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send")
-    ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("group", (), np.int64, 0),
+                 "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send", "rt_slow", "sends_slow")
+    ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("send_slow", (), np.float64, 0),
+            ("group", (), np.int64, 0),
             ("use_occ", (), bool, True), ("group_moved", (), bool, False))
 
     def __init__(self, cap: int, groups: int, block: int):
@@ -45,6 +46,8 @@ class LateState(PerSource):
         self.level = None
         self.sends = np.zeros((groups, block), np.float32)
         self.rt_send = np.full(groups, 0.5)  # per group the decay its sends' distance law uses (late_send)
+        self.rt_slow = np.full(groups, 0.5)  # the same for the slowest coupled mode's sends
+        self.sends_slow = np.zeros((0, block), np.float32)  # the slow mode's sends (coupled rooms only)
         self.seen = np.zeros(groups, bool)
         self.shapes = np.ones((groups, len(BANDS)))
         self.shapes_key = self.key = self.params = self.modal_key = self.modal_w = self.modal_shapes = None
@@ -92,6 +95,8 @@ class LateReverb:
     def state(self, cap: int) -> LateState:
         cfg = self.r.cfg
         st = LateState(cap, self.groups, cfg.block)
+        if self.modal:  # the slowest coupled mode's sends: their distance law takes its own decay
+            st.sends_slow = np.zeros((self.groups, cfg.block), np.float32)
         if cfg.reverb == "fdn":
             from sonicverse_core.acoustics.reverb import FDNReverb
 
@@ -188,7 +193,8 @@ class LateReverb:
         sends = st.sends
         st.rt_send.fill(lo)  # one decay for the whole space
         late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, st.rt_send, st.send[:n],
-                  st.send_delay[:n], fresh, sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix)
+                  st.send_delay[:n], fresh, sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix, st.rt_slow,
+                  st.send_slow[:n], st.sends_slow[:0])
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
         lv0 = st.level if st.level is not None else level
         st.level = level
@@ -225,18 +231,23 @@ class LateReverb:
             own = split["own_rt"][:, 3:6].mean(1)
             np.maximum(own, own[lr], out=st.rt_send[1:])
             st.rt_send[0] = lo
+            # the slowest mode's share dies out as slowly as that mode before it reaches the listener: a source in
+            # a dead room beside a live one rings on in the live one, not at the dead room's decay
+            np.maximum(st.rt_send, float(np.mean(split["slow_rt"][3:6])), out=st.rt_slow)
             st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) + np.count_nonzero(st.modal_w[1] > 1e-4))
         self.r.stats["room_reverbs"] = st.room_reverbs
         sends = st.sends
         late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, st.rt_send,
-                  st.send[:n], st.send_delay[:n], fresh, sends, float(self.r.cfg.sample_rate), SPEED_OF_SOUND, t_mix)
+                  st.send[:n], st.send_delay[:n], fresh, sends, float(self.r.cfg.sample_rate), SPEED_OF_SOUND, t_mix,
+                  st.rt_slow, st.send_slow[:n], st.sends_slow)
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
         if st.fdn is not None:
             self._fdn_modal(st, split, lr, sends, out)
             return
         (w_own, w_slow), (sh_own, sh_slow) = st.modal_w, st.modal_shapes
         st.conv.process(sends, w_own, sh_own, out=out, shapes_key=key)
-        st.conv_slow.process(sends, w_slow, sh_slow, out=out, shapes_key=key, ears=self._portal_ears(st, lis))
+        st.conv_slow.process(st.sends_slow, w_slow, sh_slow, out=out, shapes_key=key,
+                             ears=self._portal_ears(st, lis))
 
     def _fdn_modal(self, st, split, lr, sends, out) -> None:
         """The FDN option with rooms of their own: one network decaying as the listener's room does with its doors
@@ -251,8 +262,8 @@ class LateReverb:
             st.mid_own[:] = sh_own[:, MID].mean(1)
             st.mid_slow[:] = sh_slow[:, MID].mean(1)
             st.fdn_key = st.modal_key
-        for fdn, mid in ((st.fdn, st.mid_own), (st.fdn_slow, st.mid_slow)):
-            np.matmul(mid, sends, out=st.mono)
+        for fdn, mid, x in ((st.fdn, st.mid_own, sends), (st.fdn_slow, st.mid_slow, st.sends_slow)):
+            np.matmul(mid, x, out=st.mono)
             np.add(out, fdn.process(st.mono, out=st.fdn_out), out=out)
 
     def _portal_ears(self, st, lis):

@@ -41,7 +41,8 @@ def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm, y):
 
 
 @njit(**_opts)
-def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fresh, out, fs, c_sound, t_mix):
+def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fresh, out, fs, c_sound, t_mix,
+              rt_slow, p_slow, out_slow):
     """Sends to the late reverb, one per group of sources (out (G, B): the groups are the rooms the sources are in,
     which the renderer filters by their coupling to the listener's room): per source, its dry samples delayed by
     its travel time plus the mixing time (ring[i, w0 + t - D], D = round((dist / c + t_mix) fs): the tail starts
@@ -51,37 +52,60 @@ def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fr
     source's group (rt_group (G,): the listener's room's for group 0; for a source in another room the slower of
     its room's and the listener's, which the caller sets), and, where the
     rooms are unknown (use_occ), by the square root of the mid-band transmission of the direct path; ramped from
-    p_send. p_send and p_delay (int64) are updated."""
+    p_send. p_send and p_delay (int64) are updated.
+
+    With coupled rooms, out_slow (G, B) gets the same sends for the slowest coupled mode, whose energy dies out at
+    its own decay T = rt_slow[group] over the same time (ramped from p_slow, updated); an empty out_slow (0, B):
+    none."""
     B = out.shape[1]
     H = ring.shape[1]
+    slow = out_slow.shape[0] > 0
     out[:] = 0.0
+    if slow:
+        out_slow[:] = 0.0
     for i in range(len(dist)):
         T = max(rt_group[group[i]], 0.05)
         s = 10.0 ** (-0.174 * dist[i] / T / 20.0 - 3.0 * t_mix / T)
+        q = 0.0
+        if slow:
+            Ts = max(rt_slow[group[i]], 0.05)
+            q = 10.0 ** (-0.174 * dist[i] / Ts / 20.0 - 3.0 * t_mix / Ts)
         if use_occ[i]:
             o = 0.0
             for b in range(4, 7):
                 o += occ[i, b]
             s *= np.sqrt(max(o / 3.0, 0.0))
+            q *= np.sqrt(max(o / 3.0, 0.0))
         elif occ[i, 4] == 0.0 and occ[i, 5] == 0.0 and occ[i, 6] == 0.0:
             s = 0.0  # a source this listener does not hear
+            q = 0.0
         D = np.int64((dist[i] / c_sound + t_mix) * fs + 0.5)
         s0 = s if fresh[i] else p_send[i]
         D0 = D if fresh[i] else p_delay[i]
         p_send[i] = s
         p_delay[i] = D
-        if s == 0.0 and s0 == 0.0:
+        q0 = 0.0
+        if slow:
+            q0 = q if fresh[i] else p_slow[i]
+            p_slow[i] = q
+        if s == 0.0 and s0 == 0.0 and q == 0.0 and q0 == 0.0:
             continue
         g = group[i]
         ds = (s - s0) / B
+        dq = (q - q0) / B
         if D0 == D:
             for t in range(B):
-                out[g, t] += ring[i, (w0 + t - D) % H] * np.float32(s0 + ds * (t + 1))
+                v = ring[i, (w0 + t - D) % H]
+                out[g, t] += v * np.float32(s0 + ds * (t + 1))
+                if slow:
+                    out_slow[g, t] += v * np.float32(q0 + dq * (t + 1))
         else:
             for t in range(B):
                 r = (t + 1) / B
                 v = ring[i, (w0 + t - D0) % H] * (1.0 - r) + ring[i, (w0 + t - D) % H] * r
                 out[g, t] += v * np.float32(s0 + ds * (t + 1))
+                if slow:
+                    out_slow[g, t] += v * np.float32(q0 + dq * (t + 1))
 
 
 @njit(**_fast)
