@@ -193,21 +193,31 @@ def test_bench_fidelity_runs_both_simulators_and_the_sealed_rooms_meet_the_mass_
     assert d["sealed"]["met"]
 
 
-def test_the_peers_two_rooms_have_our_doorway_with_a_lintel_over_it():
+def test_the_peers_two_rooms_have_our_doorway_with_a_lintel_over_it_and_the_open_leaf():
     """The peer's two rooms are built as ours are: the partition's doorway 0.9 x 2.1 m, the wall above it solid (a
-    straight path through the doorway at 1.5 m is open, at 2.6 m it meets the lintel)."""
+    straight path through the doorway at 1.5 m is open, at 2.6 m it meets the lintel), and the open door's leaf in
+    the east room along the south jamb. bench fidelity's "no line of sight" listener is out of sight in both (until
+    session 20 the peer had no leaf, and its direct sound passed 2.5 cm inside the jamb); its "line of sight"
+    listener sees the source in both."""
     from app.bench.fidelity import _cases, _pra_room
 
+    scene = load_scene("builtin:two-rooms?door=open")
+    g = path_graph(scene)
     _, _, corners, H, mats, *_ = next(c for c in _cases() if c[0].startswith("two rooms, open door"))
-    seen = {}
-    for z in (1.5, 2.6):
+
+    def peer_sees(src, lis):
         room = _pra_room(corners, H, *mats)  # the room bench fidelity's peer renders
-        room.add_source([2.0, 2.0, z])
-        room.add_microphone(np.array([[6.0], [2.0], [z]]))
+        room.add_source(list(src))
+        room.add_microphone(np.array(lis, float)[:, None])
         room.image_source_model()
         direct = room.sources[0].orders == 0  # the direct path alone
-        seen[z] = bool(np.asarray(room.visibility[0])[0][direct].any())
-    assert seen == {1.5: True, 2.6: False}
+        return bool(np.asarray(room.visibility[0])[0][direct].any())
+
+    assert peer_sees((2.0, 2.0, 1.5), (6.0, 2.0, 1.5)) and not peer_sees((2.0, 2.0, 2.6), (6.0, 2.0, 2.6))
+    cases = {c[0]: (c[5], c[6]) for c in _cases() if c[0].startswith("two rooms, open door")}
+    for name, sees in (("two rooms, open door, line of sight", True), ("two rooms, open door, no line of sight", False)):
+        src, lis = cases[name]
+        assert g.line_of_sight(src, lis) == sees and peer_sees(src, lis) == sees, name
 
 
 def test_bench_accuracy_scattering_knob_parts_eyring_and_the_peer():

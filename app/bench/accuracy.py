@@ -109,9 +109,8 @@ def _late_model(quick: bool):
     from app.bench.fidelity import _cases, _ours, _pra_polygon, room_parameters
 
     todo = [c for c in _cases() if c[0].startswith(("two rooms, open door, no", "dead room"))]
-    peers = [np.array(room_parameters(_pra_polygon(corners, H, *mats[:3], src, lis, 5000 if quick else 20_000,
-                                                   floors=mats[3] if len(mats) > 3 else None,
-                                                   lintels=mats[4] if len(mats) > 4 else None))["G"])
+    peers = [np.array(room_parameters(_pra_polygon(corners, H, *mats[:3], src, lis, 5000 if quick else 20_000, 0,
+                                                   *mats[3:]))["G"])
              for _, _, corners, H, mats, src, lis, _ in todo]
     rows = []
     for per_room in (False, True):

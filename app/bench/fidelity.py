@@ -70,12 +70,13 @@ def _pra_material(name: str):
                         scattering=m.scattering)
 
 
-def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None):
+def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None, leaves=None):
     """The extruded room's walls with its floor and ceiling replaced by one polygon per entry of ``floors``
-    ((xy corners, floor material, ceiling material)), and a box hung from the ceiling per entry of ``lintels``
-    ((x0, x1, y0, y1, z0, material): its underside at z0 and its two faces across x, as over a doorway); a
-    material's coefficients are taken from an outline wall of that material (pyroomacoustics resamples them to its
-    bands when it builds those)."""
+    ((xy corners, floor material, ceiling material)), a box hung from the ceiling per entry of ``lintels``
+    ((x0, x1, y0, y1, z0, material): its underside at z0 and its two faces across x, as over a doorway), and a box
+    standing on the floor per entry of ``leaves`` ((x0, x1, y0, y1, z1, material): an open door's leaf, its four
+    sides and its top at z1). A material's coefficients are those of an outline wall of that material, or its own
+    resampled to the peer's bands."""
     import pyroomacoustics as pra
 
     names = (walls if isinstance(walls, list) else [walls] * len(corners)) + [floor, ceiling]
@@ -83,7 +84,9 @@ def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None):
 
     def coeffs(name):
         if name not in known:
-            raise ValueError(f"no outline wall, floor or ceiling of {name} to take its coefficients from")
+            m = _pra_material(name)
+            m.resample(room.octave_bands)
+            known[name] = (np.asarray(m.absorption_coeffs, float), np.asarray(m.scattering_coeffs, float))
         return known[name]
 
     def face(pts, outward, mat, name):  # outward: into the solid (pyroomacoustics' walls face away from the air)
@@ -106,28 +109,35 @@ def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None):
         out.append(face([(x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0)], (0, 0, 1), mat, "lintel"))
         for x, sign in ((x0, 1), (x1, -1)):
             out.append(face([(x, y0, z0), (x, y1, z0), (x, y1, H), (x, y0, H)], (sign, 0, 0), mat, "lintel"))
+    for x0, x1, y0, y1, z1, mat in leaves or ():
+        out.append(face([(x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1)], (0, 0, -1), mat, "leaf"))
+        for x, sign in ((x0, 1), (x1, -1)):
+            out.append(face([(x, y0, 0), (x, y1, 0), (x, y1, z1), (x, y0, z1)], (sign, 0, 0), mat, "leaf"))
+        for y, sign in ((y0, 1), (y1, -1)):
+            out.append(face([(x0, y, 0), (x1, y, 0), (x1, y, z1), (x0, y, z1)], (0, sign, 0), mat, "leaf"))
     return pra.Room(out, fs=room.fs, max_order=room.max_order, air_absorption=True, ray_tracing=True)
 
 
-def _pra_room(corners, H, walls, floor, ceiling, floors=None, lintels=None):
+def _pra_room(corners, H, walls, floor, ceiling, floors=None, lintels=None, leaves=None):
     """The peer's room: the outline extruded to H with image sources to order 3 (ray tracing on), per-room floors
-    and ceilings and the wall over a doorway where given (:func:`_pra_floors`)."""
+    and ceilings, the wall over a doorway and an open door's leaf where given (:func:`_pra_floors`)."""
     import pyroomacoustics as pra
 
     mats = [_pra_material(m) for m in walls] if isinstance(walls, list) else _pra_material(walls)
     room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=mats,
                                  ray_tracing=True, air_absorption=True)
     room.extrude(H, materials={"floor": _pra_material(floor), "ceiling": _pra_material(ceiling)})
-    if floors or lintels:  # rooms with floors and ceilings of their own; the wall over a doorway
-        room = _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels)
+    if floors or lintels or leaves:  # rooms with floors and ceilings of their own; the wall over a doorway; a leaf
+        room = _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels, leaves)
     return room
 
 
-def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0, floors=None, lintels=None):
+def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0, floors=None, lintels=None,
+                 leaves=None):
     import pyroomacoustics as pra
 
     pra.random.seed(seed)  # its ray tracing draws from NumPy's and C++'s generators: the same run, the same numbers
-    room = _pra_room(corners, H, walls, floor, ceiling, floors, lintels)
+    room = _pra_room(corners, H, walls, floor, ceiling, floors, lintels, leaves)
     room.set_ray_tracing(n_rays=rays, receiver_radius=0.5)
     room.add_source(list(src))
     room.add_microphone(np.array(lis, float)[:, None])
@@ -180,8 +190,11 @@ def _cases():
     # the partition's faces (walls 1-3 and 7-9 of the outline) are the partition's material, as in our scene
     # ... and the wall over the doorway (ours is 0.9 x 2.1 m): the partition's lintel
     lintel = [(3.95, 4.05, 1.55, 2.45, ref.DOOR_HEIGHT, ref.PARTITION)]
+    # ... and the open door's leaf (session 20): ours swings into the east room along the south jamb, 4 cm thick,
+    # and stands in the way of a straight line through the doorway's south edge (1 cm off the partition's face here)
+    leaf = [(4.06, 4.0 + ref.DOOR_WIDTH, 1.53, 1.57, ref.DOOR_HEIGHT - 0.01, ref.DOOR)]
     two = ([ref.PARTITION if k in (1, 2, 3, 7, 8, 9) else ref.WALLS for k in range(len(TWO_ROOMS))], ref.FLOOR,
-           ref.CEILING, None, lintel)
+           ref.CEILING, None, lintel, leaf)
     yield "L-room, line of sight", "builtin:l-room", L_ROOM, 3.0, mats, (5.0, 1.5, 1.5), (1.5, 1.5, 1.5), None
     yield "L-room, round the corner", "builtin:l-room", L_ROOM, 3.0, mats, (5.0, 1.5, 1.5), (1.5, 5.0, 1.5), None
     yield ("two rooms, open door, line of sight", "builtin:two-rooms?door=open", TWO_ROOMS, 3.0, two,
@@ -197,9 +210,9 @@ def _cases():
               ([(4.05, 0), (8, 0), (8, 4), (4.05, 4)], ref.FLOOR, ref.CEILING)]
     spec = f"builtin:two-rooms?door=open&west={dead}"
     yield ("dead room beside a live one, both in the dead", spec, TWO_ROOMS, 3.0,
-           (walls, ref.FLOOR, ref.CEILING, floors, lintel), (1.2, 1.2, 1.5), (2.8, 3.0, 1.5), None)
+           (walls, ref.FLOOR, ref.CEILING, floors, lintel, leaf), (1.2, 1.2, 1.5), (2.8, 3.0, 1.5), None)
     yield ("dead room beside a live one, source in the live", spec, TWO_ROOMS, 3.0,
-           (walls, ref.FLOOR, ref.CEILING, floors, lintel), (6.0, 1.0, 1.5), (1.0, 0.6, 1.5), None)
+           (walls, ref.FLOOR, ref.CEILING, floors, lintel, leaf), (6.0, 1.0, 1.5), (1.0, 0.6, 1.5), None)
 
 
 def _theory_shoebox(dims, walls, floor, ceiling, src, lis) -> dict:
@@ -285,8 +298,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     for name, spec, corners, H, mats, src, lis, dims in progress(todo, len(todo), "rooms"):
         walls, floor, ceiling = mats[:3]
         t0 = time.perf_counter()
-        h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed,
-                              floors=mats[3] if len(mats) > 3 else None, lintels=mats[4] if len(mats) > 4 else None)
+        h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed, *mats[3:])
         t_peer = time.perf_counter() - t0
         h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images)
         ours, peer = room_parameters(h), room_parameters(h_peer)
