@@ -130,6 +130,16 @@ def test_live_audio_task_in_the_loop_on_jack(jack):
     assert task.agent.ears.t == pytest.approx(task.steps * 0.1) and task.agent.phase == "listen"
 
 
+def test_bench_vr_task_runs_its_jack_server_at_the_period_asked(cli):
+    """``bench vr --task T --jack-period 512``: the private JACK server runs 512 frames a cycle (as the server
+    reports it), the engine's 256-frame callbacks run two a cycle, and the run is counted as usual."""
+    r = cli("bench", "vr", "--task", "orientation-training", "--audio-seconds", "0.5", "--jack-period", "512",
+            "--json")
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout.strip().splitlines()[-1])
+    assert d["jack_period"] == 512 and d["callbacks"] >= 0.5 * 48000 / 256 * 0.8 and d["callback_errors"] == 0
+
+
 def test_vr_task_command(cli, tmp_path):
     r = cli("vr", "--backend", "headless", "--task", "orientation-training", "--trials", "3", "--out",
             str(tmp_path), "--json")

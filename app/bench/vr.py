@@ -82,7 +82,7 @@ def _stock(scene, size, frames) -> dict:
 
 
 def bench_vr(sizes, frames: int = 60, scene: str = "builtin:apartment", audio_seconds: float = 20.0,
-             culling_scene: str = "builtin:apartment?seed=1", culling_levels=(0, 3)) -> dict:
+             culling_scene: str = "builtin:apartment?seed=1", culling_levels=(0, 3), period: int = 256) -> dict:
     from sonicverse_core.progress import progress
 
     out = {"scene": scene, "frames": frames, "target_hz": 90.0, "sizes": {}}
@@ -107,7 +107,7 @@ def bench_vr(sizes, frames: int = 60, scene: str = "builtin:apartment", audio_se
     out["device"] = _gl_renderer()
     out["room_culling"] = [room_culling(culling_scene, densify_levels=lv) for lv in culling_levels]
     if audio_seconds > 0:
-        out["live_audio"] = _live_audio(scene, audio_seconds)
+        out["live_audio"] = _live_audio(scene, audio_seconds, period=period)
     return out
 
 
@@ -207,19 +207,20 @@ def _gl_renderer() -> str:
 
 
 def live_audio_task(task: str, seconds: float = 60.0, scene: str = "builtin:apartment", agent: str | None = None,
-                    seed: int = 0) -> dict:
+                    seed: int = 0, period: int = 256) -> dict:
     """A human-robot task in the VR loop (headless backend, paced to the wall clock at 90 Hz, 512x512 stereo views
     unless the task is audio only) with the live pipeline on a private JACK dummy server for ``seconds``: xruns and
     callback timing while the task's agent (or participant) runs. The JACK dummy has no microphone: the robot hears
-    the scene and silence where the user's voice would be."""
+    the scene and silence where the user's voice would be. ``period``: the server's frames per cycle (the engine
+    still renders 256-frame blocks, several per cycle)."""
     from app.tasks.in_the_loop import make_frame_task
 
     t = make_frame_task(task, agent, seed, trials=10_000)
     return {"task": t.name, "agent": getattr(t, "agent_name", "simulated"),
-            **_live_audio(scene, seconds, task=t, realtime=True)}
+            **_live_audio(scene, seconds, task=t, realtime=True, period=period)}
 
 
-def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False) -> dict:
+def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, period: int = 256) -> dict:
     """The loop flat out at 512x512 stereo with the live pipeline on a JACK dummy server: xruns, callbacks."""
     from app.audio_rt.jack import JackServer
 
@@ -229,8 +230,12 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False) -
     try:
         from app.audio_rt.loopback import PlatformProbe
 
-        with JackServer(name), _session(scene, (512, 512), audio="live", device="system", task=task,
+        with JackServer(name, period=period), _session(scene, (512, 512), audio="live", device="system", task=task,
                                         realtime=realtime) as s:
+            from app.audio_rt.jack import _jack
+
+            # the server's frames per cycle, as it reports them ("buffer size = 512")
+            served = int(_jack("jack_bufsize").split("=")[-1].strip().split()[0])
             s.frame()  # the loop is running (first poses handed over) and the JACK graph has settled: then count
             s.audio.engine.wait_settled()
             s.audio.engine.mark()
@@ -244,7 +249,7 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False) -
             platform.update(probe.attribute(tel["xrun_at_s"], tel["block_ms"]))
             r = s.summary()
         extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}
-        return {**extra, "seconds": seconds, "loop_fps": r["fps"], "xruns": tel["xruns"], "xrun_at_s": tel["xrun_at_s"],
+        return {**extra, "seconds": seconds, "jack_period": served, "loop_fps": r["fps"], "xruns": tel["xruns"], "xrun_at_s": tel["xrun_at_s"],
                 "callbacks": tel["callbacks"], "callback_ms": tel["callback_ms"],
                 "callback_errors": tel["callback_errors"], "pose_frames": tel["pose_frames"],
                 "robot_blocks": tel["robot_blocks"], "platform": platform}

@@ -110,7 +110,7 @@ def cmd_bench_vr(a) -> int:
     if a.task:
         if a.audio_seconds <= 0:
             raise ConfigError("--task runs the live-audio part: give --audio-seconds > 0")
-        print(json.dumps(live_audio_task(a.task, a.audio_seconds, a.scene, a.agent, a.seed)))
+        print(json.dumps(live_audio_task(a.task, a.audio_seconds, a.scene, a.agent, a.seed, a.jack_period)))
         return 0
 
     try:
@@ -120,7 +120,7 @@ def cmd_bench_vr(a) -> int:
     if any(not 0 <= lv <= 4 for lv in levels):
         raise ConfigError("--culling-levels must be within 0-4 (each level x4 triangles)")
     print(json.dumps(bench_vr(a.sizes, a.frames, a.scene, a.audio_seconds,
-                              a.culling_scene, levels)))
+                              a.culling_scene, levels, a.jack_period)))
     return 0
 
 
@@ -184,5 +184,8 @@ def add_vr_commands(sub, bench_sub) -> None:
                         "speaker-following, voice-retrieval, orientation-training)")
     b.add_argument("--agent", default=None, help="the robot's agent for --task (default: the task's first)")
     b.add_argument("--seed", type=A.seed, default=0, help="seed of the task (default: 0)")
+    b.add_argument("--jack-period", type=int, default=256, choices=(256, 512, 1024),
+                   help="frames per cycle of the private JACK server (the engine renders 256-frame blocks; "
+                        "default: %(default)s)")
     b.add_argument("--json", action="store_true", help="(always JSON)")
     b.set_defaults(func=cmd_bench_vr)
