@@ -215,7 +215,8 @@ def test_the_peers_two_rooms_have_our_doorway_with_a_lintel_over_it_and_the_open
 
     assert peer_sees((2.0, 2.0, 1.5), (6.0, 2.0, 1.5)) and not peer_sees((2.0, 2.0, 2.6), (6.0, 2.0, 2.6))
     cases = {c[0]: (c[5], c[6]) for c in _cases() if c[0].startswith("two rooms, open door")}
-    for name, sees in (("two rooms, open door, line of sight", True), ("two rooms, open door, no line of sight", False)):
+    for name, sees in (("two rooms, open door, line of sight", True),
+                       ("two rooms, open door, no line of sight", False)):
         src, lis = cases[name]
         assert g.line_of_sight(src, lis) == sees and peer_sees(src, lis) == sees, name
 

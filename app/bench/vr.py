@@ -230,8 +230,8 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
     try:
         from app.audio_rt.loopback import PlatformProbe
 
-        with JackServer(name, period=period), _session(scene, (512, 512), audio="live", device="system", task=task,
-                                        realtime=realtime) as s:
+        with JackServer(name, period=period), _session(scene, (512, 512), audio="live", device="system",
+                                                       task=task, realtime=realtime) as s:
             from app.audio_rt.jack import _jack
 
             # the server's frames per cycle, as it reports them ("buffer size = 512")
@@ -249,7 +249,8 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
             platform.update(probe.attribute(tel["xrun_at_s"], tel["block_ms"]))
             r = s.summary()
         extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}
-        return {**extra, "seconds": seconds, "jack_period": served, "loop_fps": r["fps"], "xruns": tel["xruns"], "xrun_at_s": tel["xrun_at_s"],
+        return {**extra, "seconds": seconds, "jack_period": served, "loop_fps": r["fps"], "xruns": tel["xruns"],
+                "xrun_at_s": tel["xrun_at_s"],
                 "callbacks": tel["callbacks"], "callback_ms": tel["callback_ms"],
                 "callback_errors": tel["callback_errors"], "pose_frames": tel["pose_frames"],
                 "robot_blocks": tel["robot_blocks"], "platform": platform}

@@ -22,20 +22,22 @@ PORTAL_STEP = 5.0  # degrees: the azimuth table of the neighbouring room's direc
 
 
 class LateState(PerSource):
-    """A listener's late reverb: per source its send's gain and delay (``send``, ``send_delay``: ramped from), the
-    send it joins (``group``: 0 the listener's room or rooms unknown, 1 + r room r) and whether its send falls with
-    the direct path's transmission (``use_occ``); per group the block's sends, which carry sound (``seen``) and their
-    per-band amplitudes (``shapes``, made for ``shapes_key``); the reverberator (``conv`` and, with rooms of their
-    own, ``conv_slow`` and its direction ``ears`` / ``portal``; or ``fdn``, and ``fdn_slow`` with rooms of their own); the probes' mix for where the listener
-    stands (``params``, made at ``key``; its room ``lis_room``) and the level it was rendered at."""
+    """A listener's late reverb: per source its send's gain and delay (``send``, ``send_delay``: ramped from) and,
+    with rooms of their own, its send's gain to the slowest coupled mode (``send_slow``), the send it joins
+    (``group``: 0 the listener's room or rooms unknown, 1 + r room r) and whether its send falls with the direct
+    path's transmission (``use_occ``); per group the block's sends (``sends``; ``sends_slow`` to the slow mode),
+    the decays their distance laws take (``rt_send``, ``rt_slow``), which carry sound (``seen``) and their per-band
+    amplitudes (``shapes``, made for ``shapes_key``); the reverberator (``conv`` and, with rooms of their own,
+    ``conv_slow`` and its direction ``ears`` / ``portal``; or ``fdn``, and ``fdn_slow`` with rooms of their own);
+    the probes' mix for where the listener stands (``params``, made at ``key``; its room ``lis_room``) and the level
+    it was rendered at."""
 
-    __slots__ = ("send", "send_delay", "send_slow", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow", "ears", "portal",
-                 "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono", "fdn_out", "key",
-                 "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes", "fdn_rt",
-                 "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send", "rt_slow", "sends_slow")
+    __slots__ = ("send", "send_delay", "send_slow", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow",
+                 "ears", "portal", "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono",
+                 "fdn_out", "key", "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes",
+                 "fdn_rt", "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send", "rt_slow", "sends_slow")
     ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("send_slow", (), np.float64, 0),
-            ("group", (), np.int64, 0),
-            ("use_occ", (), bool, True), ("group_moved", (), bool, False))
+            ("group", (), np.int64, 0), ("use_occ", (), bool, True), ("group_moved", (), bool, False))
 
     def __init__(self, cap: int, groups: int, block: int):
         super().__init__(cap)
