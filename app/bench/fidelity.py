@@ -37,12 +37,15 @@ def _fit(db: np.ndarray, t: np.ndarray, hi: float, lo: float) -> float | None:
     return -60.0 / slope if slope < 0 else None
 
 
-def room_parameters(h: np.ndarray, fs: int = FS) -> dict:
-    """G, T30, EDT, C50, DRR per band of a mono impulse response (1/r law: a unit source gives 1/r)."""
+def room_parameters(h: np.ndarray, fs: int = FS, t_dir: int | None = None) -> dict:
+    """G, T30, EDT, C50, DRR per band of a mono impulse response (1/r law: a unit source gives 1/r). The decay
+    curves and C50 / DRR start at ``t_dir`` (samples; the direct sound's time), by default where the response first
+    comes within 20 dB of its peak (ISO 3382-1's onset, which behind a wall can be a late, loud arrival)."""
     imp = np.zeros(fs)
     imp[0] = 1.0
     e0 = np.abs(h)
-    t_dir = int(np.argmax(e0 > 0.1 * e0.max()))  # the first arrival (direct or diffracted)
+    if t_dir is None:
+        t_dir = int(np.argmax(e0 > 0.1 * e0.max()))  # the first arrival within 20 dB of the peak
     out = {k: [] for k in ("G", "T30", "EDT", "C50", "DRR")}
     for f0 in BANDS:
         x = _band(h, f0, fs) ** 2
@@ -215,6 +218,28 @@ def _cases():
            (walls, ref.FLOOR, ref.CEILING, floors, lintel, leaf), (6.0, 1.0, 1.5), (1.0, 0.6, 1.5), None)
 
 
+PRA_DELAY = 40  # samples: pyroomacoustics centres each arrival in an 81-tap fractional-delay filter
+
+
+def _onset(spec: str, src, lis) -> int:
+    """The direct sound's time (samples at FS) from source to listener along the shortest open path: the straight
+    line in sight, else the path graph's path (its 2-D length with the height difference). Both responses' decay
+    curves, C50 and DRR start there, as ISO 3382-1 starts them at the direct sound; behind a wall the standard's
+    onset (within 20 dB of the peak) can be a loud arrival 10 ms later in one response and the weak first one in
+    the other."""
+    from sonicverse_core.acoustics.paths import path_graph
+    from sonicverse_core.scene.spec import load_scene
+
+    src, lis = np.asarray(src, float), np.asarray(lis, float)
+    g = path_graph(load_scene(spec))
+    L = float(np.linalg.norm(lis - src))
+    if not g.line_of_sight(src, lis):
+        res = g.path(src[:2], lis[:2])
+        if res is not None:
+            L = float(np.hypot(res.length, lis[2] - src[2]))
+    return int(round(L / C * FS))
+
+
 def _theory_shoebox(dims, walls, floor, ceiling, src, lis) -> dict:
     from sonicverse_core.acoustics.probes import eyring_rt60
 
@@ -301,7 +326,8 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed, *mats[3:])
         t_peer = time.perf_counter() - t0
         h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images)
-        ours, peer = room_parameters(h), room_parameters(h_peer)
+        t_dir = _onset(spec, src, lis)  # both from the shortest open path's time (the peer's filter: 40 samples on)
+        ours, peer = room_parameters(h, t_dir=t_dir), room_parameters(h_peer, t_dir=t_dir + PRA_DELAY)
         row = {"case": name, "scene": spec, "source": list(src), "listener": list(lis), "bands_hz": list(BANDS),
                "ours": ours, "pyroomacoustics": peer, "vs_pyroomacoustics": _errors(ours, peer, "diffuse" in name),
                "time_s": {"ours_bake": round(t_bake, 3), "ours_render": round(t_render, 3),
