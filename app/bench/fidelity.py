@@ -341,6 +341,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
            f"{rays} rays, receiver radius 0.5 m, seed {seed})", "sample_rate": FS, "scattering": scattering, "er_order": er_order,
            "er_images": er_images, "per_room": per_room,
+           "onset": f"the direct sound's time along the shortest open path (the peer's {PRA_DELAY} samples later)",
            "cases": cases,
            "sealed": sealed,
            "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}
