@@ -77,6 +77,11 @@ def _jack(*args: str) -> str:
     return p.stdout
 
 
+def jack_buffer_size() -> int:
+    """The running JACK server's frames per cycle, as it reports them (the server JACK_DEFAULT_SERVER names)."""
+    return int(_jack("jack_bufsize").split("=")[-1].split()[0])
+
+
 def jack_connections() -> dict[str, list[str]]:
     """port -> ports it is connected to (from jack_lsp -c)."""
     out, cur = {}, None

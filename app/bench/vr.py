@@ -232,10 +232,9 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
 
         with JackServer(name, period=period), _session(scene, (512, 512), audio="live", device="system",
                                                        task=task, realtime=realtime) as s:
-            from app.audio_rt.jack import _jack
+            from app.audio_rt.jack import jack_buffer_size
 
-            # the server's frames per cycle, as it reports them ("buffer size = 512")
-            served = int(_jack("jack_bufsize").split("=")[-1].strip().split()[0])
+            served = jack_buffer_size()  # the server's frames per cycle, as it reports them
             s.frame()  # the loop is running (first poses handed over) and the JACK graph has settled: then count
             s.audio.engine.wait_settled()
             s.audio.engine.mark()
