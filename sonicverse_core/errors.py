@@ -6,6 +6,8 @@ of them into one line on stderr and exit code 2; a running session catches them 
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 
 class SonicverseError(Exception):
     """Base class: a problem the user can fix. ``str(err)`` is one line that says what and how."""
@@ -77,6 +79,41 @@ class DataError(SonicverseError):
 
 class Interrupted(SonicverseError):
     """The user or the system stopped a command (Ctrl-C, SIGTERM); files being written were finished first."""
+
+
+_STOPPED: list[str] = []  # why a signal handler stopped this process (kept: the process is on its way out)
+_HELD = [0]  # stop_held() depth
+
+
+def stop(reason: str):
+    """A signal handler's way to stop the command: note ``reason`` and raise :class:`Interrupted` wherever the main
+    thread is (inside :func:`stop_held`, when the hold ends). Any ``except`` on the way may swallow that raise (one
+    that catches every ``Exception`` or every ``SonicverseError``, ours or a library's); :func:`check_stopped` at the
+    loops' safe points raises it again."""
+    _STOPPED.append(reason)
+    if _HELD[0] == 0:
+        raise Interrupted(reason)
+
+
+@contextmanager
+def stop_held():
+    """A block that a stop must not cut in two (a trial's row going into the database and the CSV): :func:`stop`
+    only notes the stop while it runs, and it is raised when the outermost hold ends. Blocking the signal in the
+    main thread is not enough: with other threads running, the kernel hands the signal to one of them and Python
+    still runs its handler in the main thread at once."""
+    _HELD[0] += 1
+    try:
+        yield
+    finally:
+        _HELD[0] -= 1
+    if _HELD[0] == 0:
+        check_stopped()
+
+
+def check_stopped() -> None:
+    """Raise :class:`Interrupted` if :func:`stop` was called in this process (the loops call it every frame)."""
+    if _STOPPED:
+        raise Interrupted(_STOPPED[0])
 
 
 class StudyError(SonicverseError):

@@ -215,6 +215,26 @@ def _wait_mid_trial(proc, db: Path, min_done: int, task: str, timeout=300.0) -> 
     pytest.fail("the study never reached a running trial")
 
 
+def test_a_stop_inside_a_commit_waits_for_its_end_and_stays_noted():
+    """SIGTERM's handler (errors.stop) during a trial's commit notes the stop and raises it when the commit is done
+    (blocking the signal in the main thread does not hold it when other threads run); once noted, every later
+    safe point raises it again, so a raise that something swallowed cannot let the study run on."""
+    from sonicverse_core import errors
+
+    try:
+        done = []
+        with pytest.raises(errors.Interrupted, match="SIGTERM"):
+            with errors.stop_held():
+                errors.stop("terminated (SIGTERM)")  # noted, not raised here
+                done.append("committed")
+        assert done == ["committed"]
+        with pytest.raises(errors.Interrupted):
+            errors.check_stopped()
+    finally:
+        errors._STOPPED.clear()
+    errors.check_stopped()  # nothing noted: no raise
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_killed_in_a_trial_loses_at_most_that_trial_and_resumes(tmp_path, sig):
     study_file = tmp_path / "small.toml"

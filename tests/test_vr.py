@@ -285,6 +285,29 @@ def test_bad_recordings_and_bad_frames(tmp_path):
             s.run(frames=6)
         assert len(s.trajectory) == 3
 
+    # ... and if some `except Exception` on the way swallows that raise (a library's, a loader's), the next frame
+    # raises it again: SIGTERM's handler notes the stop (errors.stop) before it raises
+    from sonicverse_core import errors
+
+    with VRSession(SessionConfig(scene=SHOEBOX, views=False, audio="none", robots=0), HeadlessBackend()) as s:
+        step = s.task.step
+
+        def swallowed_at_3(session, f):
+            if f.index == 3:
+                try:
+                    errors.stop("terminated (SIGTERM)")
+                except Exception:  # noqa: BLE001 - the swallowing this guards against
+                    pass
+            return step(session, f)
+
+        s.task.step = swallowed_at_3
+        try:
+            with pytest.raises(Interrupted):
+                s.run(frames=6)
+            assert len(s.trajectory) == 4  # frame 3 ran to its end; frame 4 did not start
+        finally:
+            errors._STOPPED.clear()  # this process goes on with the other tests
+
 
 def test_audio_only_mode_imports_no_renderer(tmp_path):
     code = (

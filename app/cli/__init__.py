@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from app.cli import args as A
-from sonicverse_core.errors import Interrupted, SonicverseError
+from sonicverse_core.errors import SonicverseError, stop
 
 
 def _json(obj) -> None:
@@ -175,7 +175,7 @@ def version() -> str:
 
 
 def _on_sigterm(signum, frame):
-    raise Interrupted("terminated (SIGTERM)")
+    stop("terminated (SIGTERM)")  # raises Interrupted here, and again at the next frame if something swallows it
 
 
 def main(argv: list[str] | None = None) -> int:

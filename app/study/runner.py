@@ -14,7 +14,7 @@ import threading
 import time
 from contextlib import contextmanager
 
-from sonicverse_core.errors import Interrupted, StudyError
+from sonicverse_core.errors import Interrupted, StudyError, check_stopped, stop_held
 
 
 class TrialSkipped(Exception):
@@ -76,7 +76,8 @@ def _signals_held():
     if main:
         old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     try:
-        yield
+        with stop_held():  # SIGTERM handed to another thread still runs its handler here: it waits for the end
+            yield
     finally:
         if main:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
@@ -145,6 +146,7 @@ class StudyRunner:
         prev = max((s.block for s in plan if s.slot in done), default=None)
         try:
             for slot in todo:
+                check_stopped()  # SIGTERM whose raise something swallowed in the last trial: stop before the next
                 if prev is not None and slot.block != prev and self.study.break_s > 0:
                     self._break(slot)
                 if self.controls.paused:

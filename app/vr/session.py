@@ -22,7 +22,7 @@ import numpy as np
 from app.tasks.roam import FrameTask, FreeRoam
 from app.vr.frame import FrameInput, FrameStats, Recording
 from app.vr.transforms import head_pose, look_matrix
-from sonicverse_core.errors import ConfigError, Interrupted, SonicverseError
+from sonicverse_core.errors import ConfigError, Interrupted, SonicverseError, check_stopped
 
 WARMUP_FRAMES = 2  # not counted in the frame statistics (their intervals include the first render and audio block)
 SYNC_FRAMES = 90  # frames between syncs of the files a session writes as it runs (a second at 90 Hz)
@@ -173,7 +173,9 @@ class VRSession:
             self._traj_log.append((row,))
 
     def frame(self) -> bool:
-        """One frame; False when the backend asks to stop."""
+        """One frame; False when the backend asks to stop. Raises :class:`Interrupted` once the process was told to
+        stop (SIGTERM), even if that raise was swallowed on its way out of an earlier frame."""
+        check_stopped()
         f = self.backend.wait_frame()
         t_in = time.perf_counter()
         interval = None if self._last_in is None else t_in - self._last_in
