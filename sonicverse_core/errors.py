@@ -99,7 +99,7 @@ def stop(reason: str):
 def stop_held():
     """A block that a stop must not cut in two (a trial's row going into the database and the CSV): :func:`stop`
     only notes the stop while it runs, and it is raised when the outermost hold ends. Blocking the signal in the
-    main thread is not enough: with other threads running, the kernel hands the signal to one of them and Python
+    main thread is not enough: with other threads running, the kernel may hand the signal to one of them, and Python
     still runs its handler in the main thread at once."""
     _HELD[0] += 1
     try:
