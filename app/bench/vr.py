@@ -222,7 +222,7 @@ def live_audio_task(task: str, seconds: float = 60.0, scene: str = "builtin:apar
 
 def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, period: int = 256) -> dict:
     """The loop flat out at 512x512 stereo with the live pipeline on a JACK dummy server: xruns, callbacks."""
-    from app.audio_rt.jack import JackServer
+    from app.audio_rt.jack import JackServer, jack_buffer_size
 
     name = f"sv-bench-{os.getpid()}"
     old = os.environ.get("JACK_DEFAULT_SERVER")
@@ -232,8 +232,6 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
 
         with JackServer(name, period=period), _session(scene, (512, 512), audio="live", device="system",
                                                        task=task, realtime=realtime) as s:
-            from app.audio_rt.jack import jack_buffer_size
-
             served = jack_buffer_size()  # the server's frames per cycle, as it reports them
             s.frame()  # the loop is running (first poses handed over) and the JACK graph has settled: then count
             s.audio.engine.wait_settled()
