@@ -1,5 +1,6 @@
 """Navigation tasks: the contract battery over every task, episodes, metrics, baselines, eval CLI, vector envs."""
 import json
+import math
 import subprocess
 import sys
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 import sonicverse_core.tasks  # noqa: F401  (registers the ids)
-from sonicverse_core.errors import ActionError
+from sonicverse_core.errors import ActionError, ConfigError
 from sonicverse_core.tasks import ENV_IDS
 from sonicverse_core.tasks.episodes import GOAL_RADIUS, SUCCESS_RADIUS, homes
 from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95, shortest_actions, sna, spl
@@ -105,13 +106,40 @@ def test_episodes_follow_the_paper():
 
 
 def test_sound_stops_after_its_duration():
-    env = _make("AudioGoal", sound_seconds=(0.3, 0.3), reverb=False, sensors=("audio",)).unwrapped
+    env = _make("AudioGoal", everlasting=False, sound_seconds=(0.3, 0.3), reverb=False, sensors=("audio",)).unwrapped
     env.reset(seed=3)
     loud = []
     for _ in range(12):
         obs, *_ = env.step(np.zeros(2, np.float32))
         loud.append(float(np.abs(obs["audio"]).max()))
     assert max(loud[:2]) > 0 and max(loud[5:]) == 0.0  # heard, then silence (no reverb tail in this setting)
+
+
+def test_audiogoal_sound_plays_all_episode_and_semantic_nav_sound_stops():
+    """AudioGoal's sound is SoundSpaces' everlasting one: still heard after the longest duration SemanticAudioNav
+    draws (20 s), as loud as at the start; the same episode on SemanticAudioNav falls silent."""
+    def energies(task, **kw):
+        env = _make(task, reverb=False, sensors=("audio",), **kw).unwrapped
+        env.reset(seed=3)
+        e = []
+        for _ in range(230):  # 23 s standing still
+            obs, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
+            e.append(float(np.mean(obs["audio"].astype(np.float64) ** 2)))
+        env.close()
+        return np.array(e), env.episode
+
+    e, ep = energies("AudioGoal")
+    assert math.isinf(ep.sound_seconds)
+    first, last = e[:50].mean(), e[-30:].mean()  # the looped sound's mean power over 5 s and 3 s
+    assert first > 0 and 10 * math.log10(last / first) > -6.0
+    e2, ep2 = energies("AudioGoal", everlasting=False)
+    assert ep2.goals == ep.goals and ep2.start == ep.start and 4.0 <= ep2.sound_seconds <= 20.0
+    assert e2[-30:].max() == 0.0
+    with pytest.raises(ConfigError, match="everlasting=False"):
+        _make("AudioGoal", sound_seconds=(1.0, 2.0))
+    with pytest.raises(ConfigError, match="no goal sound"):
+        _make("SpeakerFollowing", everlasting=True)
+    assert not _make("SemanticAudioNav", sensors=("pose",)).unwrapped.task.everlasting
 
 
 def test_reward_and_success_definitions():
@@ -198,7 +226,7 @@ def test_sim_to_real_options():
     obs, _ = env.reset(seed=5)
     d = obs["depth"]
     assert np.all((d == 0) | ((d >= 0.8) & (d <= 3.5)))
-    quiet = _make("AudioGoal", ego_noise=0.01, sound_seconds=(0.1, 0.1), reverb=False).unwrapped
+    quiet = _make("AudioGoal", ego_noise=0.01, everlasting=False, sound_seconds=(0.1, 0.1), reverb=False).unwrapped
     quiet.reset(seed=5)
     for _ in range(5):
         obs, *_ = quiet.step(np.zeros(2, np.float32))

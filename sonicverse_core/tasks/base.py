@@ -61,7 +61,8 @@ class TaskConfig:
     step_penalty: float = 0.01
     collision_penalty: float = 0.005
     geodesic_range: tuple = (1.0, 10.0)
-    sound_seconds: tuple = SOUND_SECONDS
+    sound_seconds: tuple = SOUND_SECONDS  # how long a sound plays where it stops (SemanticAudioNav)
+    everlasting: bool | None = None  # the goal's sound plays all episode (None: the task's default)
     # sim-to-real
     ego_noise: float = 0.0  # RMS of the robot's ego-noise at the ears while the wheels turn at top speed
     source_gain: tuple = (1.0, 1.0)  # sampled per episode (log-uniform)
@@ -144,6 +145,8 @@ class Task:
     def __init__(self, cfg: TaskConfig, **options):
         if options:
             raise ConfigError(f"task {self.name} has no option(s) {', '.join(sorted(options))}")
+        if cfg.everlasting is not None and not hasattr(self, "everlasting"):
+            raise ConfigError(f"task {self.name} has no goal sound to make everlasting")
         self.cfg = cfg
 
     episode_type = None  # the task's episode record (a JsonRecord dataclass)

@@ -1,9 +1,11 @@
 """The three navigation tasks, run by the generic :class:`~sonicverse_core.tasks.base.TaskEnv`.
 
 ``Sonicverse/AudioGoal-v0``: go to the sounding object (depth + binaural audio); the episode succeeds as soon as
-the robot is within 0.36 m of one of the nine terminal positions.
+the robot is within 0.36 m of one of the nine terminal positions. Its sound plays all episode, looped, as
+SoundSpaces' AudioNav does (``AUDIO.EVERLASTING``); ``everlasting=False`` stops it after ``sound_seconds``.
 ``Sonicverse/AudioPointGoal-v0``: the same with a GPS + compass pointer to the goal.
-``Sonicverse/SemanticAudioNav-v0``: the paper's task: RGB + depth + audio; the sound stops after a while; a third
+``Sonicverse/SemanticAudioNav-v0``: the paper's task: RGB + depth + audio; the sound stops after ``sound_seconds``
+(4-20 s by default); a third
 action component > 0 is the stop signal, and only a stop within 0.36 m of a terminal position succeeds.
 
 Reward: geodesic progress (m) + ``success_reward`` on success - ``step_penalty`` per step - ``collision_penalty``
@@ -20,7 +22,7 @@ from gymnasium import spaces
 
 from sonicverse_core.errors import ConfigError
 from sonicverse_core.tasks.base import Task, TaskConfig, TaskEnv, sound_at
-from sonicverse_core.tasks.episodes import SUCCESS_RADIUS, Episode, sample_episode
+from sonicverse_core.tasks.episodes import SOUND_SECONDS, SUCCESS_RADIUS, Episode, sample_episode
 from sonicverse_core.tasks.metrics import shortest_actions, sna, soft_spl, spl
 
 __all__ = ["AudioGoal", "AudioPointGoal", "SemanticAudioNav", "NavTask", "TaskConfig", "TaskEnv"]
@@ -29,6 +31,15 @@ __all__ = ["AudioGoal", "AudioPointGoal", "SemanticAudioNav", "NavTask", "TaskCo
 class NavTask(Task):
     name = "AudioGoal"
     episode_type = Episode
+    everlasting = True  # the goal's sound plays all episode (an episode's ``sound_seconds`` is then inf)
+
+    def __init__(self, cfg: TaskConfig, **options):
+        super().__init__(cfg, **options)
+        if cfg.everlasting is not None:
+            self.everlasting = bool(cfg.everlasting)
+        if self.everlasting and tuple(cfg.sound_seconds) != tuple(SOUND_SECONDS):
+            raise ConfigError(f"{self.name}'s sound plays all episode, so sound_seconds has no effect: pass "
+                              "everlasting=False to stop it after sound_seconds")
 
     def sample_episode(self, env, rng: np.random.Generator) -> Episode:
         c = self.cfg
@@ -40,7 +51,9 @@ class NavTask(Task):
             if ep is not None:
                 lo, hi = c.source_gain
                 gain = float(math.exp(rng.uniform(math.log(lo), math.log(hi)))) if hi > lo else float(lo)
-                return replace(ep, source_gain=gain)
+                # the duration is drawn either way, so episodes are the same with and without an everlasting sound
+                secs = math.inf if self.everlasting else ep.sound_seconds
+                return replace(ep, source_gain=gain, sound_seconds=secs)
         raise ConfigError("no valid episode could be sampled in these homes (geodesic range too strict?)")
 
     def reset(self, env, rng, options):
@@ -52,9 +65,12 @@ class NavTask(Task):
         self._field = world.grid.distance_field(self.goals)
         env.new_renderer()
         base = sound_at(ep.sound, self.cfg.sample_rate)
-        n = int(ep.sound_seconds * self.cfg.sample_rate)
-        sig = np.resize(base, n) if n > 0 else base[:1] * 0
-        env.source = env.add_sound(sig, loop=False, gain=ep.source_gain, attached_to=ep.object_name)
+        if math.isinf(ep.sound_seconds):  # everlasting: looped all episode
+            env.source = env.add_sound(base, loop=True, gain=ep.source_gain, attached_to=ep.object_name)
+        else:
+            n = int(ep.sound_seconds * self.cfg.sample_rate)
+            sig = np.resize(base, n) if n > 0 else base[:1] * 0
+            env.source = env.add_sound(sig, loop=False, gain=ep.source_gain, attached_to=ep.object_name)
         self.geo0 = self.prev_geo = self._geodesic(env)
         return ep
 
@@ -118,3 +134,4 @@ class SemanticAudioNav(NavTask):
     name = "SemanticAudioNav"
     default_sensors = ("rgb", "depth", "audio", "spectrogram", "bump", "pose")
     stop_action = True
+    everlasting = False
