@@ -117,7 +117,8 @@ def test_sound_stops_after_its_duration():
 
 def test_audiogoal_sound_plays_all_episode_and_semantic_nav_sound_stops():
     """AudioGoal's sound is SoundSpaces' everlasting one: still heard after the longest duration SemanticAudioNav
-    draws (20 s), as loud as at the start; the same episode on SemanticAudioNav falls silent."""
+    draws (20 s), as loud as at the start; with everlasting=False (SemanticAudioNav's default) the same episode falls
+    silent."""
     def energies(task, **kw):
         env = _make(task, reverb=False, sensors=("audio",), **kw).unwrapped
         env.reset(seed=3)
@@ -137,6 +138,8 @@ def test_audiogoal_sound_plays_all_episode_and_semantic_nav_sound_stops():
     assert e2[-30:].max() == 0.0
     with pytest.raises(ConfigError, match="everlasting=False"):
         _make("AudioGoal", sound_seconds=(1.0, 2.0))
+    with pytest.raises(ConfigError, match="everlasting must be"):
+        _make("AudioGoal", everlasting="no")
     with pytest.raises(ConfigError, match="no goal sound"):
         _make("SpeakerFollowing", everlasting=True)
     assert not _make("SemanticAudioNav", sensors=("pose",)).unwrapped.task.everlasting

@@ -90,6 +90,8 @@ class TaskConfig:
         lo, hi = self.source_gain
         if not (0 < lo <= hi):
             raise ConfigError(f"source_gain range must be positive, got {self.source_gain}")
+        if self.everlasting not in (None, True, False):
+            raise ConfigError(f"everlasting must be True, False or None (the task's default), got {self.everlasting!r}")
         if self.ego_noise < 0 or min(self.pose_noise) < 0:
             raise ConfigError("ego_noise and pose_noise must be >= 0")
 

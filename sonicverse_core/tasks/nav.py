@@ -5,8 +5,8 @@ the robot is within 0.36 m of one of the nine terminal positions. Its sound play
 SoundSpaces' AudioNav does (``AUDIO.EVERLASTING``); ``everlasting=False`` stops it after ``sound_seconds``.
 ``Sonicverse/AudioPointGoal-v0``: the same with a GPS + compass pointer to the goal.
 ``Sonicverse/SemanticAudioNav-v0``: the paper's task: RGB + depth + audio; the sound stops after ``sound_seconds``
-(4-20 s by default); a third
-action component > 0 is the stop signal, and only a stop within 0.36 m of a terminal position succeeds.
+(4-20 s by default); a third action component > 0 is the stop signal, and only a stop within 0.36 m of a terminal
+position succeeds.
 
 Reward: geodesic progress (m) + ``success_reward`` on success - ``step_penalty`` per step - ``collision_penalty``
 per step with a bump. Privileged state (``env.unwrapped.privileged()``): ``world``, ``goals`` (9, 2),
@@ -36,7 +36,7 @@ class NavTask(Task):
     def __init__(self, cfg: TaskConfig, **options):
         super().__init__(cfg, **options)
         if cfg.everlasting is not None:
-            self.everlasting = bool(cfg.everlasting)
+            self.everlasting = cfg.everlasting
         if self.everlasting and tuple(cfg.sound_seconds) != tuple(SOUND_SECONDS):
             raise ConfigError(f"{self.name}'s sound plays all episode, so sound_seconds has no effect: pass "
                               "everlasting=False to stop it after sound_seconds")
