@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load_policy, load_train_state,
-                           primitives_for, save_policy as save)
+                           primitives_for, resolve_device, save_policy as save)
 
 SENSORS = ("depth", "spectrogram", "pose")
 
@@ -53,6 +53,7 @@ class ImitationConfig:
     occupancy: int = 32  # multitask: the occupancy map's V x V cells
     stage1: float = 1 / 3  # savi / multitask: the share of iterations in SAVi's first stage (memory of one step)
     goal_steps: int = 400  # savi / multitask: batches of the goal predictor's own training per first-stage iteration
+    device: str = "cpu"  # where the model trains and acts: cpu, cuda or auto (resolve_device); not part of the recipe
     rollout_steps: int = 0  # a collection episode ends here (a stuck learner's 500 steps teach little); 0: the
     # task's own (200 on navigation, 600 on speaker following, whose episodes run 20-60 s to the catch at the end)
 
@@ -156,10 +157,12 @@ def _stack(observations) -> tuple:
     return t(0), t(1), t(2)
 
 
-def _inputs(d, s, p) -> tuple:
-    """The model's inputs from quantised tensors (``d`` may be None)."""
-    return (d[..., None].float() * (DEPTH_MAX / 255) if d is not None else None, s.float() * (SPEC_MAX / 255),
-            p.float())
+def _inputs(d, s, p, device=None) -> tuple:
+    """The model's inputs from quantised tensors (``d`` may be None), on ``device`` (None: where they are)."""
+    def f(x):
+        return x.to(device, non_blocking=True).float() if device is not None else x.float()
+
+    return (f(d)[..., None] * (DEPTH_MAX / 255) if d is not None else None, f(s) * (SPEC_MAX / 255), f(p))
 
 
 def append_row(path, row: dict, first: bool) -> None:
@@ -210,24 +213,28 @@ def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = N
     """(action, next hidden state): the mean / most likely action, or with ``rng`` (discrete head) one drawn from
     the policy's distribution; a stop (tasks that have one) only when it is the most likely action, since a stop drawn
     by chance would end the episode."""
+    dev = model.device
     with torch.no_grad(), acting_threads():
-        out, _, h = model(*_inputs(*_stack([obs])), h, torch.tensor([[start]]))
+        out, _, h = model(*_inputs(*_stack([obs]), dev), h, torch.tensor([[start]], device=dev))
     if rng is not None and model.discrete:
-        prob = torch.softmax(out[0, 0].double(), -1).numpy()
-        stop = model.table[:, 2].numpy() > 0 if model.table.shape[1] == 3 else np.zeros(len(prob), bool)
+        prob = torch.softmax(out[0, 0].double(), -1).cpu().numpy()
+        table = model.table.cpu().numpy()
+        stop = table[:, 2] > 0 if table.shape[1] == 3 else np.zeros(len(prob), bool)
         if stop[int(np.argmax(prob))]:  # the stop ends the episode: taken only when it is the most likely action
-            return model.table[int(np.argmax(prob))].numpy(), h
+            return table[int(np.argmax(prob))], h
         prob = np.where(stop, 0.0, prob)
-        return model.table[int(rng.choice(len(prob), p=prob / prob.sum()))].numpy(), h
-    return model.act(out)[0, 0].numpy(), h
+        return table[int(rng.choice(len(prob), p=prob / prob.sum()))], h
+    return model.act(out)[0, 0].cpu().numpy(), h
 
 
 def bc_loss(model, b: dict, aux_weight: float) -> tuple[torch.Tensor, dict]:
     """The imitation loss on a batch of chunks (``d`` depth uint8, ``s`` spectrogram uint8, ``p`` pose, ``a`` the
     expert's actions, ``g`` the goal targets (optional), ``m`` the mask of real steps): cross-entropy (discrete head)
     or squared error (continuous head), plus ``aux_weight`` x the goal heads' squared errors."""
+    dev = model.device
+    b = {k: None if v is None else v.to(dev, non_blocking=True) for k, v in b.items()}
     m = b["m"]
-    starts = torch.zeros(m.shape)
+    starts = torch.zeros(m.shape, device=dev)
     starts[0] = 1.0
     y, a_feat, _ = model.features(*_inputs(b.get("d"), b["s"], b["p"]), model.initial_state(m.shape[1]), starts)
     out = model.head(y)
@@ -278,11 +285,16 @@ def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, ba
     params = [p for m in (model.goal_net, model.goal_audio, model.category) if m is not None for p in m.parameters()]
     opt = torch.optim.Adam(params, lr=lr)
 
+    dev = model.device
+
     def run(idx):
-        a = model.goal_net((torch.from_numpy(gather(idx, "s")).float() / 255).clamp(0, 1))
-        loc = ((model.goal_audio(a) - torch.from_numpy(gather(idx, "g"))) ** 2).sum(-1).mean()
-        ce = (torch.nn.functional.cross_entropy(model.category(a), torch.from_numpy(gather(idx, "c")).long())
-              if labelled else torch.zeros(()))
+        def t(key):
+            return torch.from_numpy(gather(idx, key)).to(dev)
+
+        a = model.goal_net((t("s").float() / 255).clamp(0, 1))
+        loc = ((model.goal_audio(a) - t("g")) ** 2).sum(-1).mean()
+        ce = (torch.nn.functional.cross_entropy(model.category(a), t("c").long())
+              if labelled else torch.zeros((), device=dev))
         return a, loc, ce
 
     model.train()
@@ -296,8 +308,8 @@ def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, ba
         a, loc, _ = run(test)
         out = {"goal_audio_test": round(float(loc), 4), "audible_frames": int(len(frames))}
         if labelled:
-            out["category_acc_test"] = round(float((model.category(a).argmax(1).numpy() == gather(test, "c")).mean()),
-                                             4)
+            out["category_acc_test"] = round(float((model.category(a).argmax(1).cpu().numpy() == gather(test, "c")
+                                                    ).mean()), 4)
     return out
 
 
@@ -358,6 +370,7 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
         raise ConfigError(f"head must be discrete or continuous, got {cfg.head!r}")
     if cfg.agent not in ("av-nav", "savi", "multitask"):
         raise ConfigError(f"agent must be av-nav, savi or multitask, got {cfg.agent!r}")
+    resolve_device(cfg.device)  # an unknown or absent device fails before anything is written
     out = Path(out)
     ck_path = out / "model.pt"
     state, rows, frames, best, start_it = {}, [], 0, None, 0
@@ -369,7 +382,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
         if not state:
             raise ConfigError(f"{ck_path} has no training state to resume from")
         old = ImitationConfig(**meta["config"])
-        cfg = ImitationConfig(**{**asdict(old), "frames": cfg.frames, "iterations": cfg.iterations})
+        cfg = ImitationConfig(**{**asdict(old), "frames": cfg.frames, "iterations": cfg.iterations,
+                                 "device": cfg.device})
         rows, frames, best, start_it = meta["log"], state["frames"], state["best"], state["iteration"] + 1
         if start_it >= cfg.iterations:
             raise ConfigError(f"{ck_path} has done {start_it} of {cfg.iterations} iterations: raise --iterations")
@@ -383,7 +397,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
     adim = env.action_space.shape[0]
     if not resume:
         model = build_policy(cfg, spec, adim)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    model.to(resolve_device(cfg.device))
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)  # (a resumed state is cast to the weights' device)
     if resume:
         opt.load_state_dict(state["optimizer"])
         rng.bit_generator.state = state["rng"]

@@ -1,4 +1,4 @@
-"""Learned policies in torch (CPU by default, CUDA when present).
+"""Learned policies in torch (on the CPU by default; on CUDA with ``--device cuda`` or ``auto``: :func:`resolve_device`).
 
 :class:`AVNav`: the audio-visual navigation policy of SoundSpaces (Chen et al. 2020): a CNN over the depth image, a
 CNN over the binaural spectrogram, the odometry pose, a GRU over time, and an actor-critic head. The action is the
@@ -57,6 +57,25 @@ def primitives_for(action_dim: int) -> tuple:
     raise ValueError(f"no discrete actions for action_dim {action_dim}")
 
 
+DEVICES = ("cpu", "cuda", "auto")
+
+
+def resolve_device(name: str | None = "cpu") -> torch.device:
+    """The torch device ``--device`` names: ``cpu`` (the default), ``cuda`` (a ConfigError where torch sees no
+    CUDA device) or ``auto`` (CUDA when present, else the CPU)."""
+    from sonicverse_core.errors import ConfigError
+
+    name = name or "cpu"
+    if name not in DEVICES:
+        raise ConfigError(f"device must be one of {', '.join(DEVICES)}, got {name!r}")
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda: torch sees no CUDA device here (torch "
+                          f"{torch.__version__}, CUDA build {torch.version.cuda}); use --device cpu or auto")
+    return torch.device(name)
+
+
 @contextlib.contextmanager
 def acting_threads(n: int = 1):
     """Torch on ``n`` threads inside the block. Acting runs the model on a batch of one between environment steps;
@@ -92,6 +111,11 @@ class ActorCritic(nn.Module):
             self.register_buffer("table", torch.tensor(cfg.primitives, dtype=torch.float32), persistent=False)
         else:
             self.log_std = nn.Parameter(torch.full((cfg.action_dim,), -0.5))
+
+    @property
+    def device(self) -> torch.device:
+        """Where the weights are (inputs go there; :func:`resolve_device`)."""
+        return self.actor.weight.device
 
     def head(self, y) -> torch.Tensor:
         return self.actor(y) if self.discrete else torch.tanh(self.actor(y))
@@ -129,7 +153,7 @@ class AVNav(ActorCritic):
             self.goal_audio = nn.Linear(h, 3)  # from the current spectrogram alone
 
     def initial_state(self, batch: int) -> torch.Tensor:
-        return torch.zeros(1, batch, self.cfg.hidden)
+        return torch.zeros(1, batch, self.cfg.hidden, device=self.device)
 
     def encode(self, depth, spec, pose) -> tuple[torch.Tensor, torch.Tensor]:
         """``depth`` may be None for an audio-only policy."""
@@ -163,7 +187,8 @@ def write_checkpoint(model: nn.Module, arch: str, path, meta: dict, half: bool =
     ``--resume`` goes on from."""
     from sonicverse_core.storage import atomic_write
 
-    state = {k: v.half() if half and v.is_floating_point() else v for k, v in model.state_dict().items()}
+    state = {k: (v.half() if half and v.is_floating_point() else v).detach().cpu()
+             for k, v in model.state_dict().items()}  # CPU tensors: a checkpoint loads anywhere
     ck = {"arch": arch, "config": asdict(model.cfg), "state": state, "meta": meta}
     if train_state is not None:
         ck["train_state"] = train_state

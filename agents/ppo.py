@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from agents.imitation import NAV_VAL, SENSORS, VAL_KEYS, _inputs, _stack, append_row, evaluate
-from agents.models import AVNav, AVNavConfig, acting_threads, load_policy, primitives_for, save_policy as save
+from agents.models import (AVNav, AVNavConfig, acting_threads, load_policy, primitives_for, resolve_device,
+                           save_policy as save)
 
 
 @dataclass
@@ -57,20 +58,22 @@ class PPOConfig:
     val_every: int = 20  # updates
     critic_warmup: int = 10  # updates that train only the value head (a checkpoint from imitation has none)
     preempt: float = 0.6  # DD-PPO: the share of processes whose finishing pre-empts the rest
+    device: str = "cpu"  # cpu, cuda or auto (resolve_device): where the model acts and trains
 
 
 class Dist:
     """The process group (``torchrun`` sets RANK / WORLD_SIZE / MASTER_ADDR), or a group of one."""
 
-    def __init__(self):
+    def __init__(self, device: torch.device = torch.device("cpu")):
         import os
 
         self.on = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1
+        self.device = device
         if self.on:
             import torch.distributed as dist
 
-            if not dist.is_initialized():
-                dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+            if not dist.is_initialized():  # NCCL for a model on CUDA (one GPU per process), gloo on the CPU
+                dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
             self.dist = dist
             self.rank, self.world = dist.get_rank(), dist.get_world_size()
             self.store = dist.distributed_c10d._get_default_store()
@@ -104,7 +107,7 @@ class Dist:
     def sum(self, x: float) -> float:
         if not self.on:
             return x
-        t = torch.tensor([x], dtype=torch.float64)
+        t = torch.tensor([x], dtype=torch.float64, device=self.device)
         self.dist.all_reduce(t)
         return float(t[0])
 
@@ -112,7 +115,8 @@ class Dist:
         """max - min of ``x`` over the processes (0 for one)."""
         if not self.on:
             return 0.0
-        hi, lo = torch.tensor([x], dtype=torch.float64), torch.tensor([x], dtype=torch.float64)
+        hi = torch.tensor([x], dtype=torch.float64, device=self.device)
+        lo = hi.clone()
         self.dist.all_reduce(hi, op=self.dist.ReduceOp.MAX)
         self.dist.all_reduce(lo, op=self.dist.ReduceOp.MIN)
         return float(hi[0] - lo[0])
@@ -138,7 +142,13 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks import make_env
 
-    dist = Dist()
+    import os
+
+    dev = resolve_device(cfg.device)
+    if dev.type == "cuda" and "LOCAL_RANK" in os.environ:  # torchrun: one GPU per process on a node
+        dev = torch.device("cuda", int(os.environ["LOCAL_RANK"]) % torch.cuda.device_count())
+        torch.cuda.set_device(dev)
+    dist = Dist(dev)
     out = Path(out)
     if dist.rank == 0 and (out / "model.pt").exists():
         raise ConfigError(f"{out / 'model.pt'} exists: choose another --out")
@@ -157,12 +167,16 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         adim = envs[0].action_space.shape[0]
         model = AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=envs[0].observation_space[
             "spectrogram"].shape, action_dim=adim, primitives=primitives_for(adim) if cfg.head == "discrete" else ()))
+    model.to(dev)
     dist.broadcast(model)
     ref = None
     if cfg.init and cfg.kl_init > 0:  # the starting policy, frozen
         import copy
 
         ref = copy.deepcopy(model).eval()
+        for mod in ref.modules():  # a copied GRU's weights on CUDA are no longer one cuDNN chunk
+            if isinstance(mod, torch.nn.RNNBase):
+                mod.flatten_parameters()
         for q_ in ref.parameters():
             q_.requires_grad_(False)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
@@ -173,7 +187,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
     obs = [e.reset(seed=int(rng.integers(2**31)))[0] for e in envs]
     h = model.initial_state(E)
     h_ref = model.initial_state(E)
-    start = torch.ones(E)
+    start = torch.ones(E, device=dev)
     log_path = out / "log.csv"
     if dist.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
@@ -188,6 +202,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
             n = 0
             for t in range(T):
                 d, s, p = _stack(obs)
+                d, s, p = (None if x is None else x.to(dev) for x in (d, s, p))
                 with torch.no_grad(), acting_threads():
                     o, v, h = model(*_inputs(d, s, p), h, start[None])
                     if ref is not None:
@@ -196,10 +211,10 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                     pi = _dist_of(model, o[0])
                     a = pi.sample()
                     logp = pi.log_prob(a) if model.discrete else pi.log_prob(a).sum(-1)
-                acts = model.table[a] if model.discrete else a.clamp(-1, 1)
+                acts = (model.table[a] if model.discrete else a.clamp(-1, 1)).cpu()
                 for k, x in zip(("d", "s", "p", "a", "logp", "v", "start"), (d[0], s[0], p[0], a, logp, v[0], start)):
                     buf[k].append(x)
-                rew, new_start = np.zeros(E, np.float32), torch.zeros(E)
+                rew, new_start = np.zeros(E, np.float32), torch.zeros(E, device=dev)
                 for i, e in enumerate(envs):
                     obs[i], r, term, trunc, info = e.step(acts[i].numpy().astype(np.float32))
                     rew[i] = r
@@ -210,7 +225,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                         ep_ret[i] = 0.0
                         obs[i] = e.reset(seed=int(rng.integers(2**31)))[0]
                         new_start[i] = 1.0
-                buf["r"].append(torch.from_numpy(rew))
+                buf["r"].append(torch.from_numpy(rew).to(dev))
                 start = new_start
                 n += E
                 if dist.on and t + 1 >= T // 4 and dist.done_count(u) >= math.ceil(cfg.preempt * dist.world):
@@ -220,11 +235,11 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
             frames += int(dist.sum(n))
             # bootstrap and advantages
             with torch.no_grad():
-                _, v_last, _ = model(*_inputs(*_stack(obs)), h, start[None])
+                _, v_last, _ = model(*_inputs(*_stack(obs), dev), h, start[None])
             L = len(buf["r"])
             B = {k: torch.stack(v) for k, v in buf.items() if v}  # (L, E, ...)
-            adv = torch.zeros(L, E)
-            last = torch.zeros(E)
+            adv = torch.zeros(L, E, device=dev)
+            last = torch.zeros(E, device=dev)
             for t in reversed(range(L)):
                 nxt_v = v_last[0] if t == L - 1 else B["v"][t + 1]
                 nonterm = 1.0 - (start if t == L - 1 else B["start"][t + 1])
@@ -246,7 +261,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 ent = pi.entropy().mean() if model.discrete else pi.entropy().sum(-1).mean()
                 warm = cfg.init is not None and u < cfg.critic_warmup
                 loss = cfg.value_coef * vl if warm else pg + cfg.value_coef * vl - cfg.entropy * ent
-                kl = torch.zeros(())
+                kl = torch.zeros((), device=dev)
                 if ref is not None:
                     kl = torch.distributions.kl_divergence(_dist_of(ref, B["ref"]), pi)
                     kl = kl.mean() if model.discrete else kl.sum(-1).mean()

@@ -103,7 +103,7 @@ class SAVi(ActorCritic):
 
     # --- state ------------------------------------------------------------------------------------------------
     def initial_state(self, batch: int) -> torch.Tensor:
-        return torch.zeros(1, batch, sum(self._sizes))
+        return torch.zeros(1, batch, sum(self._sizes), device=self.device)
 
     def _unpack(self, h):
         B = h.shape[1]
@@ -166,24 +166,25 @@ class SAVi(ActorCritic):
         # tokens: [memory (M), new (T)]; episode index per token (memory 0; +1 at each start among the new ones)
         ep_new = torch.cumsum(starts, 0)  # (T, B)
         M = mem.shape[0] if bool(valid.any()) else 0
-        tokens, ep, ok = x, ep_new, torch.ones(T, B, dtype=torch.bool)
+        dev = x.device
+        tokens, ep, ok = x, ep_new, torch.ones(T, B, dtype=torch.bool, device=dev)
         if M:
             tokens = torch.cat([mem, x], 0)
-            ep = torch.cat([torch.zeros(M, B), ep_new], 0)
+            ep = torch.cat([torch.zeros(M, B, device=dev), ep_new], 0)
             ok = torch.cat([valid, ok], 0)
         L = tokens.shape[0]
-        i = torch.arange(L)
+        i = torch.arange(L, device=dev)
         near = (i[None, :] <= i[:, None]) & (i[:, None] - i[None, :] < self.window)  # (L, L): causal, a window
         allow = near[None] & (ep.T[:, :, None] == ep.T[:, None, :]) & ok.T[:, None, :]  # (B, L, L)
-        allow = allow | torch.eye(L, dtype=torch.bool)[None]  # a token always sees itself
+        allow = allow | torch.eye(L, dtype=torch.bool, device=dev)[None]  # a token always sees itself
         # ALiBi (Press et al. 2022): each head's attention falls off linearly with a token's age, at its own slope,
         # so the current step stands out in a bag of tokens with no positions
         age = (i[:, None] - i[None, :]).clamp(min=0).float()
         bias = -self.slopes[None, :, None, None] * age  # (1, heads, L, L)
-        mask = torch.where(allow[:, None], bias, torch.tensor(float("-inf"))).reshape(B * self.cfg.heads, L, L)
+        mask = torch.where(allow[:, None], bias, float("-inf")).reshape(B * self.cfg.heads, L, L)
         enc = self.encoder(tokens, mask=mask)
         q = self.query(torch.cat([x, desc], -1))
-        self_only = torch.where(torch.eye(T, dtype=torch.bool), 0.0, float("-inf"))
+        self_only = torch.where(torch.eye(T, dtype=torch.bool, device=dev), 0.0, float("-inf"))
         y = self.decoder(q, enc, tgt_mask=self_only, memory_mask=mask[:, -T:, :])
         # the next state: the last ``memory`` tokens of the episode the sequence ends in (earlier ones invalid)
         last = ep_new[-1:]
@@ -196,7 +197,7 @@ class SAVi(ActorCritic):
     def extra_loss(self, b: dict, y, a, m) -> tuple[torch.Tensor, dict]:
         """The goal predictor's category loss (``c``: the goal's category index) and the occupancy loss (``o``:
         the true occupancy, V x V uint8) on a batch, masked by ``m``."""
-        loss, parts = torch.zeros(()), {}
+        loss, parts = torch.zeros((), device=m.device), {}
         if self.category is not None and "c" in b:
             ce = nn.functional.cross_entropy(self.category(a).reshape(-1, self.cfg.n_categories),
                                              b["c"].reshape(-1).long(), reduction="none").reshape(m.shape)
@@ -278,8 +279,9 @@ def project_depth(depth: torch.Tensor, V: int, hfov: float, camera_height: float
     N, H, W = depth.shape
     z = depth[:, ::stride, ::stride]
     fx = (W / 2) / math.tan(math.radians(hfov) / 2)
-    cols = torch.arange(0, W, stride, dtype=torch.float32)
-    rows = torch.arange(0, H, stride, dtype=torch.float32)
+    dev = depth.device
+    cols = torch.arange(0, W, stride, dtype=torch.float32, device=dev)
+    rows = torch.arange(0, H, stride, dtype=torch.float32, device=dev)
     u = ((cols - W / 2 + 0.5) / fx)[None, None, :]
     v = ((rows - H / 2 + 0.5) / fx)[None, :, None]
     left, height = -u * z, camera_height - v * z
@@ -288,11 +290,11 @@ def project_depth(depth: torch.Tensor, V: int, hfov: float, camera_height: float
     j = torch.floor((EXTENT / 2 - left) / cell).long()
     inside = (z > 0.1) & (z < DEPTH_MAX - 1e-3) & (i >= 0) & (i < V) & (j >= 0) & (j < V)
     obst = inside & (height > 0.08) & (height < 1.0)
-    n = torch.arange(N)[:, None, None].expand_as(i)
+    n = torch.arange(N, device=dev)[:, None, None].expand_as(i)
     flat = (n * V * V + i.clamp(0, V - 1) * V + j.clamp(0, V - 1))
-    out = torch.zeros(2, N * V * V)
-    out[0].index_add_(0, flat[obst], torch.ones(int(obst.sum())))
-    out[1].index_add_(0, flat[inside], torch.ones(int(inside.sum())))
+    out = torch.zeros(2, N * V * V, device=dev)
+    out[0].index_add_(0, flat[obst], torch.ones(int(obst.sum()), device=dev))
+    out[1].index_add_(0, flat[inside], torch.ones(int(inside.sum()), device=dev))
     return (out.reshape(2, N, V, V).permute(1, 0, 2, 3) > 0).float()
 
 

@@ -7,6 +7,8 @@
 * **Update**: the imitation update (forward over 48-step chunks of 16 sequences, backward, Adam) in frames/s.
 * **Models** (``agents``): the rollout and the update of SAVi and the multi-task model (audio + depth) beside
   AV-Nav's, so what the scene memory and the occupancy U-Net cost shows against the same env.
+* **Devices** (``--devices cpu cuda``): each model's rollout (acting on a batch of one between env steps) and
+  update with its weights on each device, in the same run; CUDA times end with a synchronisation.
 * **Vector**: rollout steps/s in total against the number of subprocess workers (Gymnasium AsyncVectorEnv), with
   the workers' threads shared out over the cores (the default) and with the libraries' own defaults (Mesa's
   llvmpipe starts a rasteriser thread per core in every worker).
@@ -41,20 +43,27 @@ def _model(env, sensors, size: int, agent: str = "av-nav", task: str = "AudioGoa
     return build_policy(ImitationConfig(task=task, agent=agent, size=size), spec, adim).eval()
 
 
-def _tensors(obs, batched: bool):
+def _tensors(obs, batched: bool, device=None):
     """The model's inputs (T = 1, B) from an observation (or a vector env's stacked observations), quantised as the
-    training data is (:func:`agents.imitation._quantise`)."""
+    training data is (:func:`agents.imitation._quantise`), on ``device``."""
     import torch
 
     from agents.imitation import _inputs, _quantise, _stack
 
     if not batched:
-        return _inputs(*_stack([obs]))
-    return _inputs(*(None if x is None else torch.from_numpy(x)[None] for x in _quantise(obs)))
+        return _inputs(*_stack([obs]), device)
+    return _inputs(*(None if x is None else torch.from_numpy(x)[None] for x in _quantise(obs)), device)
+
+
+def _sync(device) -> None:
+    import torch
+
+    if device is not None and torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, threads: int | None = 1,
-                agent: str = "av-nav") -> dict:
+                agent: str = "av-nav", device: str = "cpu") -> dict:
     """``threads``: torch's threads while acting (:func:`agents.models.acting_threads`; None: torch's default)."""
     import contextlib
 
@@ -65,7 +74,7 @@ def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, thr
 
     env = make_env(task, split="train", homes=1, sensors=sensors, width=size, height=size)
     try:
-        model = _model(env, sensors, size, agent, task)
+        model = _model(env, sensors, size, agent, task).to(device)
         obs, _ = env.reset(seed=seed)
         h, start = model.initial_state(1), True
         t_env = t_model = 0.0
@@ -74,9 +83,9 @@ def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, thr
                 t_env = t_model = 0.0
             t0 = time.perf_counter()
             with torch.no_grad(), (acting_threads(threads) if threads else contextlib.nullcontext()):
-                d, s, p = _tensors(obs, batched=False)
-                out, _, h = model(d, s, p, h, torch.tensor([[start]]))
-                a = model.act(out)[0, 0].numpy()
+                d, s, p = _tensors(obs, batched=False, device=device)
+                out, _, h = model(d, s, p, h, torch.tensor([[start]], device=device))
+                a = model.act(out)[0, 0].cpu().numpy()  # (the copy back waits for the device)
             t1 = time.perf_counter()
             obs, _, term, trunc, _ = env.step(a.astype(np.float32))
             start = term or trunc
@@ -101,11 +110,11 @@ def rollout_one(task: str, sensors: tuple, steps: int, size: int, seed: int, thr
             "model_share": round(t_model / total, 3), "env_ms": round(1000 * t_env / steps, 3),
             "model_ms": round(1000 * t_model / steps, 3), "env_only_steps_per_s": round(env_only, 1),
             "ratio_to_env_only": round(steps / total / env_only, 3),
-            "parameters": int(sum(p.numel() for p in model.parameters()))}
+            "parameters": int(sum(p.numel() for p in model.parameters())), "device": str(device)}
 
 
 def update(task: str, sensors: tuple, size: int, reps: int = 4, seq: int = 48, batch: int = 16,
-           agent: str = "av-nav") -> dict:
+           agent: str = "av-nav", device: str = "cpu") -> dict:
     """Frames/s of the imitation update on random data of the training data's shapes and types."""
     import torch
 
@@ -115,7 +124,7 @@ def update(task: str, sensors: tuple, size: int, reps: int = 4, seq: int = 48, b
 
     env = make_env(task, split="train", homes=1, sensors=sensors, width=size, height=size)
     try:
-        model = _model(env, sensors, size, agent, task).train()
+        model = _model(env, sensors, size, agent, task).to(device).train()
         spec = env.observation_space["spectrogram"].shape
         adim = env.action_space.shape[0]
     finally:
@@ -141,9 +150,11 @@ def update(task: str, sensors: tuple, size: int, reps: int = 4, seq: int = 48, b
         opt.step()
 
     step()  # warm-up
+    _sync(device)
     t0 = time.perf_counter()
     for _ in range(reps):
         step()
+    _sync(device)
     dt = time.perf_counter() - t0
     return {"frames_per_s": round(reps * seq * batch / dt, 1), "batch_frames": seq * batch,
             "ms_per_batch": round(1000 * dt / reps, 1)}
@@ -187,11 +198,15 @@ def rollout_vector(task: str, workers: int, steps: int, size: int, seed: int, th
 
 
 def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size: int = 64, seed: int = 0,
-                agents=("av-nav",)) -> dict:
+                agents=("av-nav",), devices=("cpu",)) -> dict:
     import os
 
     import torch
 
+    from agents.models import resolve_device
+
+    for dv in devices:
+        resolve_device(dv)  # cuda without a CUDA device: a ConfigError before anything runs
     out = {"bench": "train", "task": task, "size": size, "steps": steps, "torch_threads": torch.get_num_threads(),
            "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}
     for name, sensors in (("audio_depth", AUDIO_DEPTH), ("audio_only", AUDIO_ONLY)):
@@ -208,6 +223,24 @@ def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size:
             u = out["audio_depth"]["update"] if agent == "av-nav" else update(task, AUDIO_DEPTH, size, agent=agent)
             models[agent] = {"rollout": {k: r[k] for k in keys}, "update_frames_per_s": u["frames_per_s"]}
         out["models"] = models
+    if set(devices) - {"cpu"}:  # every model on every device, side by side (audio + depth)
+        keys = ("frames_per_s", "model_ms", "env_ms", "ratio_to_env_only")
+        per = {}
+        for dv in devices:
+            per[dv] = {}
+            for agent in agents:
+                r = rollout_one(task, AUDIO_DEPTH, steps, size, seed, agent=agent, device=dv)
+                u = update(task, AUDIO_DEPTH, size, agent=agent, device=dv)
+                per[dv][agent] = {"rollout": {k: r[k] for k in keys}, "update_frames_per_s": u["frames_per_s"],
+                                  "update_ms_per_batch": u["ms_per_batch"]}
+        out["devices"] = per
+        gpu = next(dv for dv in devices if dv != "cpu")
+        out["device_name"] = torch.cuda.get_device_name(0)
+        if "cpu" in devices:
+            out["update_speedup"] = {ag: round(per[gpu][ag]["update_frames_per_s"] / per["cpu"][ag]
+                                               ["update_frames_per_s"], 2) for ag in agents}
+            out["rollout_speedup"] = {ag: round(per[gpu][ag]["rollout"]["frames_per_s"] / per["cpu"][ag]["rollout"]
+                                                ["frames_per_s"], 2) for ag in agents}
     vec = []
     for w in workers:
         for threads in (-1, None):

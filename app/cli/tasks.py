@@ -49,7 +49,8 @@ def cmd_train(a) -> int:
 
         argv = ["--recipe", "ppo", "--agent", a.agent, "--task", a.task, "--frames", str(a.frames), "--envs",
                 str(a.envs), "--size", str(a.size), "--val-episodes", str(a.val_episodes), "--seed", str(a.seed),
-                "--head", a.head, "--out", a.out, "--preempt", str(a.preempt), "--kl-init", str(a.kl_init)]
+                "--head", a.head, "--out", a.out, "--preempt", str(a.preempt), "--kl-init", str(a.kl_init),
+                "--device", a.device]
         argv += (["--init", a.init] if a.init else []) + (["--json"] if a.json else [])
         cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={a.nproc}",
                "-m", "agents.train", *argv]
@@ -74,7 +75,7 @@ def cmd_train(a) -> int:
         from agents.ppo import PPOConfig, train as train_ppo
 
         cfg = PPOConfig(task=a.task, frames=a.frames, envs=a.envs, size=a.size, val_episodes=a.val_episodes,
-                        seed=a.seed, init=a.init, head=a.head, preempt=a.preempt, kl_init=a.kl_init)
+                        seed=a.seed, init=a.init, head=a.head, preempt=a.preempt, kl_init=a.kl_init, device=a.device)
         res = train_ppo(cfg, a.out, progress=progress)
         if res["rank"] != 0:
             return 0
@@ -83,7 +84,7 @@ def cmd_train(a) -> int:
 
         cfg = ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
                               size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
-                              aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq)
+                              aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device)
         res = train(cfg, a.out, progress=progress, resume=a.resume)
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
@@ -99,7 +100,8 @@ def cmd_bench_env(a) -> int:
 def cmd_bench_train(a) -> int:
     from app.bench.train import bench_train
 
-    print(json.dumps(bench_train(a.task, a.steps, tuple(a.workers), a.size, a.seed, tuple(a.agents))))
+    print(json.dumps(bench_train(a.task, a.steps, tuple(a.workers), a.size, a.seed, tuple(a.agents),
+                                 tuple(a.devices))))
     return 0
 
 
@@ -326,6 +328,8 @@ def add_task_commands(sub, bench_sub) -> None:
     t.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
     t.add_argument("--out", default="out/train", type=A.out_dir, help="output folder (default: %(default)s)")
     t.add_argument("--resume", action="store_true", help="go on from --out's model.pt (to more --iterations)")
+    t.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
+                   help="where the model acts and trains (auto: CUDA when torch sees it; default: %(default)s)")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.set_defaults(func=cmd_train)
 
@@ -351,6 +355,8 @@ def add_task_commands(sub, bench_sub) -> None:
     bt.add_argument("--workers", type=A.count(1, 64), nargs="+", default=[1, 2],
                     help="numbers of vector-env workers to time (default: 1 2)")
     bt.add_argument("--size", type=A.count(40, 256), default=64, help="depth image side (default: %(default)s)")
+    bt.add_argument("--devices", nargs="+", default=["cpu"], choices=("cpu", "cuda"),
+                    help="devices to time the models on, side by side in the same run (default: cpu)")
     bt.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")
     bt.add_argument("--json", action="store_true", help="(always JSON)")
     bt.set_defaults(func=cmd_bench_train)
