@@ -387,3 +387,28 @@ def test_bench_accuracy_shoebox_images_match_the_peers_at_both_orders():
     rows = {r["setting"]: r["error"] for r in _early(quick=True)["rows"]}
     assert rows["order 1"] < 0.03 and rows["order 2"] < 0.03, rows
     assert pra.constants.get("rir_hpf_enable")
+
+
+def test_bench_cues_the_paths_point_to_the_source_or_its_doorway(cli):
+    """`sonicverse bench cues`: at AudioGoal starts, the dry paths' level and time differences point to the source's
+    side in line of sight and to the side of the path's last bend without it; every model reports its cost and the
+    paths' share of its output; bad input is one line and exit 2."""
+    import json
+
+    r = cli("bench", "cues", "--episodes", "8", "--headings", "3", "--seed", "1", check_rc=0)
+    b = json.loads(r.stdout)
+    assert set(b["models"]) == {"paths", "paths+er", "whole-space", "per-room"}
+    dry = b["models"]["paths"]
+    cases = [dry[c] for c in ("line_of_sight", "no_line_of_sight") if c in dry and dry[c]["lateral"] >= 3]
+    assert cases, dry
+    for c in cases:
+        assert c["ild_side"] >= 0.75 and c["itd_side"] >= 0.66, c  # chance: 0.5
+    assert dry["level_vs_distance"]["db_per_m"] < -1.0  # dry, a nearer goal is louder
+    for m in ("paths+er", "whole-space", "per-room"):
+        v = b["models"][m]
+        assert v["render_ms_per_s"] > 0
+        for c in ("line_of_sight", "no_line_of_sight"):
+            if c in v:
+                assert v[c]["path_share_db"] <= 0.01  # the paths are part of every model's output
+    bad = cli("bench", "cues", "--seconds", "0.5")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1

@@ -165,6 +165,21 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--er-images", choices=("room", "box"), default="room",
                     help="early reflections off the listener's room's own walls (default) or its probe's box")
     bf.set_defaults(func=cmd_bench_fidelity)
+    bq = bench_sub.add_parser("cues", help="does what the robot hears point where it should go? (AudioGoal homes)",
+                              description="At AudioGoal episodes' starts in train homes, facing random ways: the "
+                              "share of places whose interaural level and time differences point to the source's "
+                              "side (line of sight) or to the side of the last bend of the open path to it (the "
+                              "doorway: no line of sight), per acoustic model (paths alone, + early reflections, + "
+                              "the whole space's late reverb, + per-room late reverb) in the same run, with the "
+                              "paths' level against the whole output and each model's cost. Chance is 0.5.")
+    bq.add_argument("--episodes", type=A.count(1, 100_000), default=40, help="episodes (default: %(default)s)")
+    bq.add_argument("--headings", type=A.count(1, 64), default=3,
+                    help="random headings per place (default: %(default)s)")
+    bq.add_argument("--seconds", type=A.number(1.05, 30.0), default=2.0,
+                    help="seconds rendered; the last one is analysed (default: %(default)s)")
+    bq.add_argument("--seed", type=A.seed, default=0, help="seed of the episodes and headings (default: %(default)s)")
+    bq.add_argument("--json", action="store_true", help="(always JSON)")
+    bq.set_defaults(func=cmd_bench_cues)
 
 
 def cmd_bench_audio(a) -> int:
@@ -188,4 +203,11 @@ def cmd_bench_fidelity(a) -> int:
 
     print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
                                     a.er_images)))
+    return 0
+
+
+def cmd_bench_cues(a) -> int:
+    from app.bench.cues import bench_cues
+
+    print(json.dumps(bench_cues(a.episodes, a.headings, a.seconds, a.seed)))
     return 0

@@ -46,6 +46,34 @@ def segment_meets_boxes(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.nda
     return np.any((tmax >= np.maximum(tmin, 0.0)) & (tmin <= 1.0), axis=1)
 
 
+def sounding_bounds(scene) -> np.ndarray:
+    """(m, 2, 3): each object's world bounds, 1 cm wider, in the scene's order (its part in the dynamic mesh);
+    a door's is empty (a door is not where a sound comes from)."""
+    from sonicverse_core.scene.model import Door
+
+    b = np.empty((len(scene.objects), 2, 3))
+    for i, o in enumerate(scene.objects):
+        b[i] = ((np.inf,) * 3, (-np.inf,) * 3) if isinstance(o, Door) else o.world_bounds() + [[-0.01], [0.01]]
+    return b
+
+
+def own_object_crossings(bounds: np.ndarray, offset: int, cr, starts: np.ndarray) -> np.ndarray:
+    """(k,) bool: which of the crossings ``cr`` (of segments starting at ``starts`` (n, 3), a source's end) cross an
+    object whose ``bounds`` (:func:`sounding_bounds`; its part is ``offset`` + its index) hold the segment's start:
+    the object the sound comes from (a TV, a toilet, a cushion: :meth:`~sonicverse_core.scene.model.SceneObject.
+    sound_position` is the centre of its bounds). A sounding object radiates from its own surface, so its own parts
+    do not occlude it. Before session 22 they did: in 7 of 12 AudioGoal episodes the goal's direct sound passed
+    through its own object's material (a toilet's, a shower's, a picture's)."""
+    out = np.zeros(len(cr.ray), bool)
+    if len(cr.ray) == 0 or not np.any(cr.dynamic):
+        return out
+    k = cr.part - offset  # dynamic parts: one per object, in the scene's order
+    j = np.flatnonzero(cr.dynamic & (k >= 0) & (k < len(bounds)))
+    p = starts[cr.ray[j]]
+    out[j] = np.all((p >= bounds[k[j], 0]) & (p <= bounds[k[j], 1]), axis=1)
+    return out
+
+
 def _part_bounds(mesh) -> tuple[np.ndarray, np.ndarray]:
     """Bounding box (lo, hi) of every part of a SceneMesh."""
     tri = mesh.vertices[mesh.faces]
@@ -81,6 +109,7 @@ class Occlusion:
         self.tolerance, self.budget = tolerance, rays_per_block
         self._log_trans = 0.5 * np.log(np.maximum(material_arrays()[2], 1e-12))
         self._boxes_version = None
+        self._bounds = (None, None)  # (scene version, sounding_bounds)
         self._poses = {o.name: o.pose.copy() for o in scene.objects}
         self._dirty_version, self._dirty = scene.dynamic_version, None
         self.stats = {"occlusion_rays": 0, "occlusion_skipped": 0}
@@ -176,11 +205,15 @@ class Occlusion:
         target = np.ones((len(idx), len(BANDS)))
         if len(cast):
             cr = self.caster.crossings(a[cast], b[cast])
-            if len(cr.ray):
-                key = cr.ray.astype(np.int64) * (int(cr.part.max()) + 1) + cr.part
+            if self._bounds[0] != version:
+                self._bounds = (version, sounding_bounds(self.scene))
+            keep = ~own_object_crossings(self._bounds[1], self.caster.part_offset(), cr, a[cast])  # not its own wall
+            ray, part, mat = cr.ray[keep], cr.part[keep], cr.material[keep]
+            if len(ray):
+                key = ray.astype(np.int64) * (int(part.max()) + 1) + part
                 _, first = np.unique(key, return_index=True)  # a part counts once per segment
                 logamp = np.zeros((len(cast), len(BANDS)))
-                np.add.at(logamp, cr.ray[first], self._log_trans[cr.material[first]])
+                np.add.at(logamp, ray[first], self._log_trans[mat[first]])
                 target[cast] = np.exp(logamp)
         occ_target[idx] = target
         st.seg[idx] = np.concatenate([a, b], axis=1)
