@@ -13,6 +13,8 @@ Per case (line of sight or not) and per acoustic model, at places where the refe
 * ``ild_side``: the share whose interaural level difference (1.5 kHz up to Nyquist) has the reference's sign (left
   louder where it is on the left), and ``ild_corr``, its correlation with ``sin(bearing)`` over all places;
 * ``itd_side``: the same for the interaural time difference (the peak of GCC-PHAT within 0.75 ms);
+* ``onset_ild_side``, ``onset_itd_side``: the same from the frames just after the sound's onsets (20 ms frames whose
+  energy rose by more than 3 dB, weighted by the rise: the precedence effect); ``onsets``: lateral places with any;
 * ``level_vs_distance``: does louder mean nearer? The level at the ears (dB re the sound's own mean square, so a loud
   TV is not taken for a near one) against the geodesic distance to the goal over all places: the slope (dB/m), the
   correlation, and the median level within 3 m minus that beyond 6 m;
@@ -53,6 +55,29 @@ def _itd(x: np.ndarray, sr: int) -> float:
     if e <= 0:
         return float("nan")
     return (int(np.argmax(cc)) - len(cc) // 2) / sr
+
+
+def _onset_cues(y: np.ndarray, sr: int, lo: float = 1500.0) -> tuple[float, float]:
+    """(ITD s, ILD dB) weighted towards onsets, as the precedence effect hears them: the frames (20 ms every 10 ms) of
+    ``y`` (2, n) whose energy rose by more than 3 dB over the 20 ms before them, each weighted by the rise
+    (:func:`agents.scripted.onset_gcc_phat`'s weights). NaN without any onset."""
+    from agents.scripted import onset_gcc_phat
+
+    frame, hop = 320 * sr // 16000, 160 * sr // 16000
+    cc, w = onset_gcc_phat(y[:, frame:], y[:, :frame], sr, MAX_ITD, frame, hop)
+    if w <= 0:
+        return float("nan"), float("nan")
+    itd = (int(np.argmax(cc)) - len(cc) // 2) / sr
+    yy = y.astype(np.float64)
+    starts = np.arange(hop, yy.shape[1] - frame + 1, hop)
+    fr = np.stack([yy[:, s:s + frame] for s in starts], 1)  # (2, frames, frame)
+    e = (fr ** 2).mean(axis=(0, 2))
+    before = np.array([(yy[:, max(s - 2 * hop, 0):s] ** 2).mean() for s in starts]) + 1e-12
+    wt = np.maximum(0.0, np.log10(e / before + 1e-12) - 0.3) * (e > 1e-10)
+    f = np.fft.rfftfreq(frame, 1 / sr)
+    hi = (np.abs(np.fft.rfft(fr, axis=2)[:, :, f >= lo]) ** 2).sum(2)  # (2, frames)
+    el, er = (wt * hi[0]).sum() + 1e-20, (wt * hi[1]).sum() + 1e-20
+    return itd, float(10 * np.log10(el / er))
 
 
 def _places(episodes: int, headings: int, seed: int):
@@ -128,7 +153,8 @@ def bench_cues(episodes: int = 40, headings: int = 3, seconds: float = 2.0, seed
                 x = o[:, -SR:]
                 s = math.sin(math.atan2(d[1], d[0]) - math.radians(y))
                 e = float(np.mean(x.astype(np.float64) ** 2))
-                rows.append((m, los, s, _ild(x, SR), _itd(x, SR), e, 10 * math.log10(e / power + 1e-30), geo))
+                rows.append((m, los, s, _ild(x, SR), _itd(x, SR), e, 10 * math.log10(e / power + 1e-30), geo,
+                             *_onset_cues(o[:, -SR - 320:], SR)))
     if not rows:
         raise ConfigError("no place had a source with a path to it: raise --episodes")
     return _summary(rows, models, cost, bake_s, n_places, seconds, episodes, headings, seed)
@@ -173,11 +199,17 @@ def _summary(rows, models, cost, bake_s, n_places, seconds, episodes, headings, 
             itd = np.array([r[4] for r in sel])
             lat = np.abs(s) > 0.5
             ok = np.isfinite(itd)
+            oitd = np.array([r[8] for r in sel])
+            oild = np.array([r[9] for r in sel])
+            on = np.isfinite(oitd) & lat
             case = {"places": len(sel), "lateral": int(lat.sum()),
                     "ild_side": round(float(np.mean(np.sign(ild[lat]) == np.sign(s[lat]))), 3) if lat.any() else None,
                     "itd_side": round(float(np.mean(np.sign(itd[lat & ok]) == np.sign(s[lat & ok]))), 3)
                     if (lat & ok).any() else None,
-                    "ild_corr": _corr(s, ild), "itd_corr": _corr(s[ok], itd[ok])}
+                    "ild_corr": _corr(s, ild), "itd_corr": _corr(s[ok], itd[ok]),
+                    "onsets": int(on.sum()),
+                    "onset_ild_side": round(float(np.mean(np.sign(oild[on]) == np.sign(s[on]))), 3) if on.any() else None,
+                    "onset_itd_side": round(float(np.mean(np.sign(oitd[on]) == np.sign(s[on]))), 3) if on.any() else None}
             if m != "paths":
                 e = np.array([r[5] for r in sel])
                 pe = np.array(ref_e[los])
