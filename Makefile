@@ -4,7 +4,7 @@ REQHASH := $(shell cat requirements.txt pyproject.toml scripts/install-system.sh
 STAMP   := .venv/.installed-$(REQHASH)
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup demo test test-slow test-all bench clean
+.PHONY: setup demo test test-slow test-all test-gpu bench clean
 setup: $(STAMP)
 
 $(STAMP): requirements.txt pyproject.toml scripts/install-system.sh
@@ -20,13 +20,17 @@ demo: setup
 	.venv/bin/sonicverse vr --out out/demo
 
 test: setup
-	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q -m "not slow"
+	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q -m "not slow and not gpu"
 
 test-slow: setup
 	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q -m slow
 
 test-all: setup
-	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q
+	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q -m "not gpu"
+
+# the learned agents on CUDA: fails where torch sees no CUDA device
+test-gpu: setup
+	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q -m gpu
 
 bench: setup
 	.venv/bin/sonicverse bench rays

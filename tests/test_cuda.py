@@ -1,7 +1,7 @@
 """The learned agents on a CUDA device (``--device cuda``): the same losses and actions as on the CPU, a short
-DAgger and PPO run that checkpoint files loading on the CPU, and the bench's device rows. These need a GPU, which CI
-machines do not have: there they are skipped with that reason (``-ra`` lists it); they ran on the GPU machine a
-session was lent (the README says which run). The errors for a device that is not there run everywhere."""
+DAgger and PPO run that checkpoint files loading on the CPU, and the bench's device rows. Those are marked ``gpu``:
+`make test` (CI, no GPU) leaves them out, `make test-gpu` runs them and fails where torch sees no CUDA device; they
+passed on the GPU machine lent in session 22 (README). The errors for a device that is not there run everywhere."""
 import json
 
 import numpy as np
@@ -9,7 +9,11 @@ import pytest
 import torch
 
 CUDA = torch.cuda.is_available()
-needs_cuda = pytest.mark.skipif(not CUDA, reason="no CUDA device on this machine (the GPU checks run where one is)")
+
+
+@pytest.fixture
+def cuda():
+    assert CUDA, "the gpu tests need a CUDA device: run them where torch sees one (`make test-gpu`)"
 
 
 def test_a_device_that_is_not_there_is_a_clear_error(cli, tmp_path):
@@ -46,9 +50,9 @@ def _batch(model, T=12, B=3, seed=0):
     return b
 
 
-@needs_cuda
+@pytest.mark.gpu
 @pytest.mark.parametrize("agent", ["av-nav", "savi", "multitask"])
-def test_the_models_give_the_same_loss_gradients_and_actions_on_cuda(agent):
+def test_the_models_give_the_same_loss_gradients_and_actions_on_cuda(cuda, agent):
     import copy
 
     from agents.imitation import ImitationConfig, _policy_step, bc_loss, build_policy
@@ -81,8 +85,8 @@ def test_the_models_give_the_same_loss_gradients_and_actions_on_cuda(agent):
         assert torch.allclose(hc, hg.cpu(), rtol=1e-3, atol=1e-4)
 
 
-@needs_cuda
-def test_dagger_and_ppo_train_on_cuda_and_their_checkpoints_load_on_the_cpu(tmp_path):
+@pytest.mark.gpu
+def test_dagger_and_ppo_train_on_cuda_and_their_checkpoints_load_on_the_cpu(cuda, tmp_path):
     from agents.imitation import ImitationConfig, train
     from agents.models import load_policy
     from agents.ppo import PPOConfig, train as train_ppo
@@ -100,8 +104,8 @@ def test_dagger_and_ppo_train_on_cuda_and_their_checkpoints_load_on_the_cpu(tmp_
     assert load_policy(tmp_path / "ppo" / "model.pt")[0].device.type == "cpu"
 
 
-@needs_cuda
-def test_bench_train_times_each_model_on_each_device(cli):
+@pytest.mark.gpu
+def test_bench_train_times_each_model_on_each_device(cuda, cli):
     r = cli("bench", "train", "--steps", "20", "--workers", "1", "--agents", "av-nav", "savi",
             "--devices", "cpu", "cuda", check_rc=0)
     b = json.loads(r.stdout)
