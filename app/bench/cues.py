@@ -81,7 +81,8 @@ def _onset_cues(y: np.ndarray, sr: int, lo: float = 1500.0) -> tuple[float, floa
 
 
 def _places(episodes: int, headings: int, seed: int):
-    """(scene spec, source position, sound signal, ears, [yaw...]) per episode of AudioGoal's train homes."""
+    """(scene spec, scene, source position, sound signal, ears, [yaw...], geodesic distance to the goal) per episode
+    of AudioGoal's train homes."""
     from sonicverse_core.tasks import make_env
     from sonicverse_core.tasks.base import sound_at
 
@@ -116,9 +117,9 @@ def bench_cues(episodes: int = 40, headings: int = 3, seconds: float = 2.0, seed
         raise ConfigError(f"--seconds must be within 1-30 (the last second is analysed), got {seconds}")
     models = tuple(m for m in MODELS if m in models or m == "paths")  # paths: the reference level
     block = 400
-    rows = []  # (model, los, sin(bearing), ild, itd, energy)
+    rows = []  # (model, los, sin(bearing), ild, itd, energy, level re the sound, geodesic m, onset itd, onset ild)
     cost = {m: 0.0 for m in models}
-    bake_s = {m: 0.0 for m in models}
+    bake_s = {"whole-space": 0.0, "per-room": 0.0}  # the probes' bakes (paths+er uses the whole space's)
     casters, probes = {}, {}
     n_places = 0
     for spec, scene, src, sig, ears, yaws, geo in _places(episodes, headings, seed):
@@ -139,7 +140,7 @@ def bench_cues(episodes: int = 40, headings: int = 3, seconds: float = 2.0, seed
             if m != "paths" and key not in probes:  # (the early reflections come from the probes' rooms)
                 t0 = time.perf_counter()
                 probes[key] = scene_probes(scene, BakeConfig(per_room=m == "per-room"))
-                bake_s[m] += time.perf_counter() - t0
+                bake_s[key[1]] += time.perf_counter() - t0
             cfg = RenderConfig(sample_rate=SR, block=block, early_reflections=m != "paths",
                                late_reverb=m in ("whole-space", "per-room"))
             r = AcousticRenderer(scene, cfg, probes.get(key))
@@ -182,8 +183,8 @@ def _summary(rows, models, cost, bake_s, n_places, seconds, episodes, headings, 
             ref_e.setdefault(los, []).append(e)
     for m in models:
         res = {"render_ms_per_s": round(1000 * cost[m] / max(n_places, 1) / seconds, 2)}
-        if bake_s[m]:
-            res["bake_s"] = round(bake_s[m], 2)
+        if bake_s.get(m):
+            res["bake_s"] = round(bake_s[m], 2)  # the probes it needs, baked (or read from the cache) in this run
         lv = np.array([(r[6], r[7]) for r in rows if r[0] == m])  # (level, geodesic distance) per place, heading
         level, geo = lv[:, 0], lv[:, 1]
         slope = float(np.polyfit(geo, level, 1)[0]) if np.std(geo) > 0 else None
