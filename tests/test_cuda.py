@@ -16,6 +16,15 @@ def cuda():
     assert CUDA, "the gpu tests need a CUDA device: run them where torch sees one (`make test-gpu`)"
 
 
+@pytest.fixture
+def fp32():
+    """CUDA in full fp32 for the test (no TF32 in convolutions or matrix products), restored after it."""
+    old = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    yield
+    torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = old
+
+
 def test_a_device_that_is_not_there_is_a_clear_error(cli, tmp_path):
     from agents.models import resolve_device
     from sonicverse_core.errors import ConfigError
@@ -52,12 +61,11 @@ def _batch(model, T=12, B=3, seed=0):
 
 @pytest.mark.gpu
 @pytest.mark.parametrize("agent", ["av-nav", "savi", "multitask"])
-def test_the_models_give_the_same_loss_gradients_and_actions_on_cuda(cuda, agent):
+def test_the_models_give_the_same_loss_gradients_and_actions_on_cuda(cuda, fp32, agent):
     import copy
 
     from agents.imitation import ImitationConfig, _policy_step, bc_loss, build_policy
 
-    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False  # compare in full fp32
     torch.manual_seed(0)
     cpu = build_policy(ImitationConfig(agent=agent, memory=4, occupancy=16), (2, 64, 49), 3)
     if hasattr(cpu, "stage"):
