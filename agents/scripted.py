@@ -412,21 +412,28 @@ def gcc_phat(audio: np.ndarray, sr: int, max_itd: float) -> tuple[np.ndarray, fl
     return np.concatenate([cc[-lag:], cc[: lag + 1]]), e
 
 
-def onset_gcc_phat(audio: np.ndarray, tail: np.ndarray, sr: int, max_itd: float, frame: int = 320,
-                   hop: int = 160) -> tuple[np.ndarray, float]:
-    """GCC-PHAT weighted towards onsets (the precedence effect: the first wavefront carries the direction, the
-    room's reflections follow): frames of ``frame`` samples every ``hop`` over ``tail`` (the end of the previous
-    block, at least ``frame`` samples) + ``audio``; each frame's GCC is weighted by how much its energy rose over the
-    two hops before it (log10 ratio above 0.3, i.e. +3 dB). Returns (weighted sum over lags -L..L, total weight)."""
+def onset_frames(audio: np.ndarray, tail: np.ndarray, frame: int = 320, hop: int = 160) -> tuple[np.ndarray, np.ndarray]:
+    """(frames (2, k, frame), weights (k,)): frames of ``frame`` samples every ``hop`` over ``tail`` (the end of the
+    previous block, at least ``frame`` samples) + ``audio``, each weighted by how much its energy rose over the two
+    hops before it (log10 ratio above 0.3, i.e. +3 dB; 0 otherwise): the onsets, where the precedence effect takes
+    the direction from the first wavefront."""
     y = np.concatenate([tail, audio], axis=1).astype(np.float64)
     starts = np.arange(tail.shape[1] - frame + hop, y.shape[1] - frame + 1, hop)
-    lag = int(math.ceil(max_itd * sr)) + 1
     if len(starts) == 0:
-        return np.zeros(2 * lag + 1), 0.0
+        return np.zeros((2, 0, frame)), np.zeros(0)
     fr = np.stack([y[:, s:s + frame] for s in starts], 1)
     e = (fr ** 2).mean(axis=(0, 2))
     before = np.array([(y[:, max(s - 2 * hop, 0):s] ** 2).mean() for s in starts]) + 1e-12
-    w = np.maximum(0.0, np.log10(e / before + 1e-12) - 0.3) * (e > 1e-10)
+    return fr, np.maximum(0.0, np.log10(e / before + 1e-12) - 0.3) * (e > 1e-10)
+
+
+def onset_gcc_phat(audio: np.ndarray, tail: np.ndarray, sr: int, max_itd: float, frame: int = 320,
+                   hop: int = 160) -> tuple[np.ndarray, float]:
+    """GCC-PHAT weighted towards onsets (the precedence effect: the first wavefront carries the direction, the
+    room's reflections follow): each frame of :func:`onset_frames` weighted by its rise. Returns (weighted sum over
+    lags -L..L, total weight)."""
+    lag = int(math.ceil(max_itd * sr)) + 1
+    fr, w = onset_frames(audio, tail, frame, hop)
     if not np.any(w > 0):
         return np.zeros(2 * lag + 1), 0.0
     X = np.fft.rfft(fr[1], 2 * frame) * np.conj(np.fft.rfft(fr[0], 2 * frame))

@@ -58,26 +58,21 @@ def _itd(x: np.ndarray, sr: int) -> float:
 
 
 def _onset_cues(y: np.ndarray, sr: int, lo: float = 1500.0) -> tuple[float, float]:
-    """(ITD s, ILD dB) weighted towards onsets, as the precedence effect hears them: the frames (20 ms every 10 ms) of
-    ``y`` (2, n) whose energy rose by more than 3 dB over the 20 ms before them, each weighted by the rise
-    (:func:`agents.scripted.onset_gcc_phat`'s weights). NaN without any onset."""
-    from agents.scripted import onset_gcc_phat
+    """(ITD s, ILD dB) weighted towards onsets, as the precedence effect hears them: the 20 ms frames (every 10 ms)
+    of ``y`` (2, n; its first frame is the history) whose energy rose by more than 3 dB, each weighted by the rise
+    (:func:`agents.scripted.onset_frames`). NaN without any onset."""
+    from agents.scripted import onset_frames, onset_gcc_phat
 
     frame, hop = 320 * sr // 16000, 160 * sr // 16000
-    cc, w = onset_gcc_phat(y[:, frame:], y[:, :frame], sr, MAX_ITD, frame, hop)
+    audio, tail = y[:, frame:], y[:, :frame]
+    cc, w = onset_gcc_phat(audio, tail, sr, MAX_ITD, frame, hop)
     if w <= 0:
         return float("nan"), float("nan")
-    itd = (int(np.argmax(cc)) - len(cc) // 2) / sr
-    yy = y.astype(np.float64)
-    starts = np.arange(hop, yy.shape[1] - frame + 1, hop)
-    fr = np.stack([yy[:, s:s + frame] for s in starts], 1)  # (2, frames, frame)
-    e = (fr ** 2).mean(axis=(0, 2))
-    before = np.array([(yy[:, max(s - 2 * hop, 0):s] ** 2).mean() for s in starts]) + 1e-12
-    wt = np.maximum(0.0, np.log10(e / before + 1e-12) - 0.3) * (e > 1e-10)
+    fr, wt = onset_frames(audio, tail, frame, hop)
     f = np.fft.rfftfreq(frame, 1 / sr)
     hi = (np.abs(np.fft.rfft(fr, axis=2)[:, :, f >= lo]) ** 2).sum(2)  # (2, frames)
-    el, er = (wt * hi[0]).sum() + 1e-20, (wt * hi[1]).sum() + 1e-20
-    return itd, float(10 * np.log10(el / er))
+    return (int(np.argmax(cc)) - len(cc) // 2) / sr, float(10 * np.log10(((wt * hi[0]).sum() + 1e-20) /
+                                                                         ((wt * hi[1]).sum() + 1e-20)))
 
 
 def _places(episodes: int, headings: int, seed: int):
