@@ -122,7 +122,8 @@ def test_config_rejects_bad_settings():
 
 
 def test_callback_logs_when_each_xrun_happened_and_keeps_the_mic_ring_in_step():
-    """PortAudio's status flags are counted and stamped with the callback index (telemetry's xrun_at_s); a failing
+    """PortAudio's status flags are counted and stamped with the callback index (telemetry's xrun_at_s) and with
+    the longest of the two callbacks before (xrun_callback_ms: did the callback itself overrun?); a failing
     block still advances the microphone ring, which the robots' process follows frame for frame."""
     import sounddevice as sd
 
@@ -138,9 +139,11 @@ def test_callback_logs_when_each_xrun_happened_and_keeps_the_mic_ring_in_step():
             eng.sh.tele[C.FAULTS] = 1
         flags = sd.CallbackFlags(0x4 if k in (3, 7) else 0)  # paOutputUnderflow
         core.callback(ind, outd, B, None, flags)
+    eng.sh.durations.data[0, 2] = 0.009  # callback 2 overran (9 ms): the xrun flagged in callback 3 is its
     tele = eng.telemetry()
     assert tele["xruns"] == 2 and tele["output_underflows"] == 2 and tele["callback_errors"] == 1
     np.testing.assert_allclose(tele["xrun_at_s"], [3 * B / FS, 7 * B / FS], atol=1e-3)
+    assert tele["xrun_callback_ms"][0] == 9.0 and 0 < tele["xrun_callback_ms"][1] < 1000 * B / FS
     assert int(eng.sh.mic.head[0]) == int(eng.sh.tele[C.FRAMES]) == 10 * B
     assert len(core.r.listeners) == 1  # role 'user': the robots are rendered elsewhere
 
@@ -166,6 +169,12 @@ def test_platform_probe_and_realtime_settings():
     probe.samples[2000, 1], probe.samples[2001, 1], probe.samples[5000, 1] = 6.0, 5.5, 1.5
     a = probe.attribute([2.05, 3.5, 5.01], period_ms=5.333)
     assert a["xrun_platform_ms"] == [6.0, 0.02, 1.5] and a["xruns_in_platform_stalls"] == 2
+    assert "xruns_callback_overran" not in a
+    # the xrun at 3.5 s, outside the stalls, after a callback of 7 ms: ours; at 2.05 s it is the platform's
+    a = probe.attribute([2.05, 3.5, 5.01], period_ms=5.333, callback_ms=[9.0, 7.0, 1.0])
+    assert a["xruns_callback_overran"] == 1 and a["xruns_unexplained"] == 0
+    a = probe.attribute([2.05, 3.5, 5.01], period_ms=5.333, callback_ms=[9.0, 1.0, 1.0])
+    assert a["xruns_callback_overran"] == 0 and a["xruns_unexplained"] == 1
     assert a["platform_stalls"] == 2 and a["platform_stalls_over_period"] == 2
     assert len(res["wakeup_ms_max"]) == os.cpu_count() and all(0 < m < 1000 for m in res["wakeup_ms_max"])
     assert res["steal_ms"] is None or res["steal_ms"] >= 0

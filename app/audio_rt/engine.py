@@ -297,12 +297,19 @@ class AudioEngine:
         x1 = int(self.sh.tele[C.XRUNS])
         x0 = max(x1 - int(t[C.XRUNS]), x1 - C.XRUN_LOG, 0)
         c0 = int(m[C.CALLBACKS]) if m is not None else 0
-        xrun_s = [round((int(self.sh.xrun_at[k % C.XRUN_LOG]) - c0) * block_ms / 1000, 3) for k in range(x0, x1)]
+        at = [int(self.sh.xrun_at[k % C.XRUN_LOG]) for k in range(x0, x1)]
+        xrun_s = [round((i - c0) * block_ms / 1000, 3) for i in at]
+        # the longest of the two callbacks before each flagged one (PortAudio flags the block after the late one):
+        # above a period, the callback itself overran; below it, it was woken late or the server was
+        xrun_cb = [round(max((float(self.sh.durations.data[0, j % C.DURATIONS]) * 1000
+                              for j in (i - 2, i - 1) if 0 <= j and n - j <= C.DURATIONS), default=float("nan")), 3)
+                   for i in at]
         return {
             "state": self.state, "callbacks": int(t[C.CALLBACKS]), "frames": int(t[C.FRAMES]),
             "xruns": int(t[C.XRUNS]), "input_overflows": int(t[C.IN_OVERFLOW]),
             "output_underflows": int(t[C.OUT_UNDERFLOW]), "callback_errors": int(t[C.ERRORS]),
             "xrun_at_s": xrun_s,  # stream time of each xrun (the newest XRUN_LOG), from the window's start
+            "xrun_callback_ms": xrun_cb,  # the longest of the two callbacks before each xrun, ms
             "block_ms": round(block_ms, 3),
             "callback_ms": {"median": round(float(np.median(d)), 3) if d.size else None,
                             "p99": round(float(np.percentile(d, 99)), 3) if d.size else None,

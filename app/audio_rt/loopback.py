@@ -101,11 +101,14 @@ class PlatformProbe:
             out["why"] = self.why
         return out
 
-    def attribute(self, xrun_at_s, period_ms: float, window_s: float = 0.1, stall_ms: float = 1.0) -> dict:
+    def attribute(self, xrun_at_s, period_ms: float, window_s: float = 0.1, stall_ms: float = 1.0,
+                  callback_ms=None) -> dict:
         """For each xrun (seconds from the window's start) the longest platform wake-up latency within
         ``window_s`` of it; the platform's stalls (wake-ups later than ``stall_ms``, 50 times a quiet machine's
         20 us; a cluster within ``window_s`` counts once) and how many xruns fell in one (call after
-        :meth:`result`)."""
+        :meth:`result`). ``callback_ms`` (telemetry's ``xrun_callback_ms``, one per xrun): of the xruns outside the
+        platform's stalls, how many followed a callback that itself ran longer than a period (ours) and how many
+        neither (unexplained: a callback woken late, the server)."""
         t, lat = self.samples[:, 0], self.samples[:, 1]
         worst = []
         for x in xrun_at_s:
@@ -113,9 +116,15 @@ class PlatformProbe:
             worst.append(round(float(near.max()), 3) if near.size else None)
         st = np.sort(t[lat > stall_ms])
         stalls = int(np.sum(np.diff(st) > window_s) + 1) if st.size else 0
-        return {"xrun_platform_ms": worst, "stall_ms": stall_ms, "platform_stalls": stalls,
-                "platform_stalls_over_period": int(np.sum(lat > period_ms)), "period_ms": round(period_ms, 3),
-                "xruns_in_platform_stalls": sum(1 for w in worst if w is not None and w > stall_ms)}
+        in_stall = [w is not None and w > stall_ms for w in worst]
+        out = {"xrun_platform_ms": worst, "stall_ms": stall_ms, "platform_stalls": stalls,
+               "platform_stalls_over_period": int(np.sum(lat > period_ms)), "period_ms": round(period_ms, 3),
+               "xruns_in_platform_stalls": sum(in_stall)}
+        if callback_ms is not None:
+            over = [c is not None and c > period_ms for c in callback_ms]
+            out["xruns_callback_overran"] = sum(1 for s, o in zip(in_stall, over) if o and not s)
+            out["xruns_unexplained"] = sum(1 for s, o in zip(in_stall, over) if not o and not s)
+        return out
 
 
 def random_sources(spec: str | None, n: int, seed: int = 0, gain: float = 0.05):
@@ -200,7 +209,7 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
             t = t1 - t0
         tele = eng.telemetry()
         platform = probe.result()
-        platform.update(probe.attribute(tele["xrun_at_s"], tele["block_ms"]))
+        platform.update(probe.attribute(tele["xrun_at_s"], tele["block_ms"], callback_ms=tele["xrun_callback_ms"]))
     finally:
         eng.stop()
         if vis is not None:
@@ -221,6 +230,7 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
         "round_trip_bursts": int(ok.size), "round_trip_missed": int(lags.size - ok.size),
         "round_trip_periods": round(float(np.median(ok)) / block, 3) if ok.size else None,
         "settle_s": round(settle, 3), "xruns": tele["xruns"], "xrun_at_s": tele["xrun_at_s"],
+        "xrun_callback_ms": tele["xrun_callback_ms"],
         "callbacks": tele["callbacks"], "callback_errors": tele["callback_errors"], "robot_blocks": tele["robot_blocks"],
         "robot_blocks_skipped": tele["robot_blocks_skipped"],
         "callback_p99_ms": tele["callback_ms"]["p99"], "callback_ms": tele["callback_ms"],

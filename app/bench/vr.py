@@ -243,11 +243,11 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
                 s.frame()
             tel = s.audio.telemetry()
             platform = probe.result()
-            platform.update(probe.attribute(tel["xrun_at_s"], tel["block_ms"]))
+            platform.update(probe.attribute(tel["xrun_at_s"], tel["block_ms"], callback_ms=tel["xrun_callback_ms"]))
             r = s.summary()
         extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}
         return {**extra, "seconds": seconds, "jack_period": served, "loop_fps": r["fps"], "xruns": tel["xruns"],
-                "xrun_at_s": tel["xrun_at_s"],
+                "xrun_at_s": tel["xrun_at_s"], "xrun_callback_ms": tel["xrun_callback_ms"],
                 "callbacks": tel["callbacks"], "callback_ms": tel["callback_ms"],
                 "callback_errors": tel["callback_errors"], "pose_frames": tel["pose_frames"],
                 "robot_blocks": tel["robot_blocks"], "platform": platform}
