@@ -43,8 +43,11 @@ def atomic_write(path, mode: str = "wb"):
     """``with atomic_write(p) as fh: fh.write(...)``: the file appears whole at ``p`` when the block ends without
     an exception, and not at all (the old one stays) otherwise."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:  # name the file asked for, not the temporary one beside it
+        raise OSError(exc.errno, f"cannot write there ({exc.strerror})", str(path)) from exc
     try:
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would make results private
         with os.fdopen(fd, mode) as fh:

@@ -101,6 +101,15 @@ def test_nothing_is_written_when_the_output_is_refused(bad, capsys):
     assert not (bad / "out.mp3").exists()
 
 
+def test_a_refused_output_names_the_file_asked_for(capsys):
+    """A place where no file can be made (here /proc) is reported with the path the user gave, not the temporary
+    file the atomic write would have renamed."""
+    assert main(["render", "shoebox:6x4x3", "--sound", "sofa", "--source", "1,1,1", "--listener", "3,2,1.5",
+                 "--seconds", "0.1", "--out", "/proc/out.wav"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("sonicverse: error:") and err.endswith(": /proc/out.wav") and ".tmp" not in err, err
+
+
 def test_help_and_version_exit_0(capsys):
     assert main(["--version"]) == 0 and capsys.readouterr().out.startswith("sonicverse ")
     assert main(["render", "--help"]) == 0 and "--seconds" in capsys.readouterr().out
