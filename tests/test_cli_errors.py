@@ -42,6 +42,7 @@ def table(d):
         [*r, "--out", out, "--block", "0"], [*r, "--out", out, "--rays", "-5"],
         ["bake", "shoebox:6x4x3", "--probes", "-3"], ["bake", "shoebox:6x4x3", "--seed", "-1"],
         ["bake", "shoebox:6x4x3", "--at", "1,2"], ["bake", "shoebox:6x4x3", "--at", "1,nan,1"],
+        ["bake", "shoebox:6x4x3", "--at", "1,1,1", "--at", "100,100,1"],
         ["bench", "env", "--steps", "0"], ["bench", "env", "--workers", "-1"], ["bench", "env", "--size", "x"],
         ["bench", "audio", "--sources", "0"], ["bench", "audio", "--seconds", "nan"],
         ["bench", "rays", "--rays", "0"], ["bench", "accuracy", "--reference-rays", "10"],

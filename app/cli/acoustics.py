@@ -56,7 +56,14 @@ def cmd_bake(a) -> int:
 
     scene = load_scene(a.spec)
     if a.at:
+        from sonicverse_core.acoustics.probes import enclosed_fraction
+        from sonicverse_core.errors import ConfigError
+
         positions = np.array(a.at)
+        for p, f in zip(positions, enclosed_fraction(scene, positions)):
+            if f <= 0.5:  # outside the enclosure (or the scene is open there): a probe would bake a ray escape
+                raise ConfigError(f"--at {','.join(f'{x:g}' for x in p)} is not enclosed by the scene: only "
+                                  f"{f:.0%} of the rays from there hit a surface; put probes inside a room")
     else:
         positions = default_probe_positions(scene, a.probes, rng=np.random.default_rng(a.seed))
     probes = bake(scene, positions, BakeConfig(rays=a.rays, seed=a.seed, scattering=a.scattering,
