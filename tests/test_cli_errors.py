@@ -46,7 +46,7 @@ def table(d):
         ["bench", "env", "--steps", "0"], ["bench", "env", "--workers", "-1"], ["bench", "env", "--size", "x"],
         ["bench", "audio", "--sources", "0"], ["bench", "audio", "--seconds", "nan"],
         ["bench", "rays", "--rays", "0"], ["bench", "accuracy", "--reference-rays", "10"],
-        ["bench", "fidelity", "--rays", "5"],
+        ["bench", "fidelity", "--rays", "5"], ["bench", "fidelity", "--realisations", "0"],
         ["bench", "recogniser", "--commands", "0"], ["bench", "recogniser", "--homes", "x"],
         ["task", "train-recogniser", "--epochs", "0"], ["task", "train-recogniser", "--out", str(d / "w.txt")],
         ["bench", "vr", "--sizes", "512"], ["bench", "vr", "--frames", "2"], ["bench", "vr", "--audio-seconds", "-1"],

@@ -193,6 +193,30 @@ def test_bench_fidelity_runs_both_simulators_and_the_sealed_rooms_meet_the_mass_
     assert d["sealed"]["met"]
 
 
+def test_bench_fidelity_realisations_average_the_energy_not_the_parameters():
+    """``--realisations N``: our responses differ only where they are stochastic (the tail's noise), the direct
+    sound and the images stay put; the parameters of N responses are those of their mean squared band signals, so
+    identical responses give the parameters of one, and the mean's energy lies between the draws'."""
+    from app.bench.fidelity import FS, _cases, _onset, _ours, room_parameters
+
+    cases = {c[0]: c for c in _cases()}
+    _, spec, *_, src, lis, _ = cases["two rooms, open door, line of sight"]
+    t = _onset(spec, src, lis)
+    hs = [_ours(spec, src, lis, 1.0, realisation=k)[0] for k in range(2)]
+    early = slice(t - 40, t + int(0.004 * FS))  # the direct sound and the first images, before the tail starts
+    np.testing.assert_allclose(hs[0][early], hs[1][early], atol=1e-6)
+    late = slice(t + int(0.1 * FS), t + int(0.5 * FS))
+    a, b = hs[0][late], hs[1][late]
+    assert abs(np.corrcoef(a, b)[0, 1]) < 0.1  # another noise...
+    assert abs(10 * np.log10(np.sum(a ** 2) / np.sum(b ** 2))) < 1.0  # ...of the same decay
+    one, two = room_parameters(hs[0], t_dir=t), room_parameters([hs[0], hs[0]], t_dir=t)
+    for k in one:
+        np.testing.assert_allclose(np.array(one[k], float), np.array(two[k], float), atol=1e-3)
+    mean = room_parameters(hs, t_dir=t)
+    lo, hi = sorted(room_parameters(h, t_dir=t)["G"][2] for h in hs)
+    assert lo - 0.01 <= mean["G"][2] <= hi + 0.01  # the mean energy lies between the draws'
+
+
 def test_the_peers_two_rooms_have_our_doorway_with_a_lintel_over_it_and_the_open_leaf():
     """The peer's two rooms are built as ours are: the partition's doorway 0.9 x 2.1 m, the wall above it solid (a
     straight path through the doorway at 1.5 m is open, at 2.6 m it meets the lintel), and the open door's leaf in

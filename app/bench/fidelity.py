@@ -37,18 +37,26 @@ def _fit(db: np.ndarray, t: np.ndarray, hi: float, lo: float) -> float | None:
     return -60.0 / slope if slope < 0 else None
 
 
-def room_parameters(h: np.ndarray, fs: int = FS, t_dir: int | None = None) -> dict:
+def room_parameters(h, fs: int = FS, t_dir: int | None = None) -> dict:
     """G, T30, EDT, C50, DRR per band of a mono impulse response (1/r law: a unit source gives 1/r). The decay
     curves and C50 / DRR start at ``t_dir`` (samples; the direct sound's time), by default where the response first
-    comes within 20 dB of its peak (ISO 3382-1's onset, which behind a wall can be a late, loud arrival)."""
+    comes within 20 dB of its peak (ISO 3382-1's onset, which behind a wall can be a late, loud arrival).
+
+    ``h`` may also be a list of responses of the same room (realisations of a stochastic model: other noise, other
+    rays): the parameters are then those of their mean squared band signals, the ensemble's expected energy
+    decay, so that one realisation's chance (an octave at 250 Hz holds few degrees of freedom in 50 ms) does not
+    decide a comparison."""
+    hs = [np.asarray(x, float) for x in h] if isinstance(h, (list, tuple)) else [np.asarray(h, float)]
+    n = max(len(x) for x in hs)
+    hs = [np.pad(x, (0, n - len(x))) for x in hs]
     imp = np.zeros(fs)
     imp[0] = 1.0
-    e0 = np.abs(h)
+    e0 = np.abs(hs[0])
     if t_dir is None:
         t_dir = int(np.argmax(e0 > 0.1 * e0.max()))  # the first arrival within 20 dB of the peak
     out = {k: [] for k in ("G", "T30", "EDT", "C50", "DRR")}
     for f0 in BANDS:
-        x = _band(h, f0, fs) ** 2
+        x = np.mean([_band(y, f0, fs) ** 2 for y in hs], axis=0)
         ref = np.sum(_band(imp, f0, fs) ** 2) * 0.1 ** 2
         out["G"].append(10 * np.log10(np.sum(x) / ref))
         x = x[t_dir:]
@@ -149,16 +157,21 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
 
 
 def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
-          er_order: int = 1, per_room: bool = False, er_images: str = "room") -> tuple[np.ndarray, float, float]:
+          er_order: int = 1, per_room: bool = False, er_images: str = "room",
+          realisation: int = 0) -> tuple[np.ndarray, float, float]:
+    """Our mono impulse response; ``realisation`` > 0: another bake seed and another tail noise (0: the defaults)."""
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
     from sonicverse_core.scene.spec import load_scene
 
     scene = load_scene(spec)
     t0 = time.perf_counter()
-    probes = scene_probes(scene, BakeConfig(scattering=scattering, per_room=per_room))
+    bake = BakeConfig(scattering=scattering, per_room=per_room)
+    if realisation:
+        bake = BakeConfig(scattering=scattering, per_room=per_room, seed=bake.seed + realisation)
+    probes = scene_probes(scene, bake)
     r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order,
-                                                          er_images=er_images), probes=probes)
+                                             er_images=er_images, tail_seed=realisation), probes=probes)
     t_bake = time.perf_counter() - t0
     x = np.zeros(int(seconds * FS), np.float32)
     x[0] = 1.0
@@ -305,10 +318,17 @@ def _sealed(scattering: str = "stochastic", per_room: bool = False) -> dict:
 
 def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0,
                    scattering: str = "stochastic", er_order: int = 1, per_room: bool = False,
-                   er_images: str = "room") -> dict:
+                   er_images: str = "room", realisations: int = 1) -> dict:
     """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");
     ``er_order``, ``er_images``: our image sources' order and geometry (``RenderConfig``); ``per_room``: probes baked per room, the
-    rooms' decays coupled (``BakeConfig.per_room``)."""
+    rooms' decays coupled (``BakeConfig.per_room``). ``realisations`` N > 1: both models run N times (the peer with
+    seeds ``seed`` .. ``seed + N - 1``, ours with N bake seeds and tail noises) and each case's parameters are
+    those of the mean squared band signals (:func:`room_parameters`): the models' expected responses compared,
+    not one draw of each."""
+    if not (1 <= realisations <= 64):
+        from sonicverse_core.errors import ConfigError
+
+        raise ConfigError(f"realisations must be within 1..64, got {realisations}")
     from sonicverse_core.acoustics.probes import BakeConfig
     from sonicverse_core.progress import progress
 
@@ -322,10 +342,14 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         todo = todo[1:2] + todo[4:5] + todo[6:7]
     for name, spec, corners, H, mats, src, lis, dims in progress(todo, len(todo), "rooms"):
         walls, floor, ceiling = mats[:3]
-        t0 = time.perf_counter()
-        h_peer = _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed, *mats[3:])
-        t_peer = time.perf_counter() - t0
-        h, t_bake, t_render = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images)
+        h_peer, h, t_peer, t_bake, t_render = [], [], 0.0, 0.0, 0.0
+        for k in range(realisations):
+            t0 = time.perf_counter()
+            h_peer.append(_pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed + k, *mats[3:]))
+            t_peer += (time.perf_counter() - t0) / realisations
+            y, tb, tr = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images, realisation=k)
+            h.append(y)
+            t_bake, t_render = t_bake + tb / realisations, t_render + tr / realisations
         t_dir = _onset(spec, src, lis)  # both from the shortest open path's time (the peer's filter: 40 samples on)
         ours, peer = room_parameters(h, t_dir=t_dir), room_parameters(h_peer, t_dir=t_dir + PRA_DELAY)
         row = {"case": name, "scene": spec, "source": list(src), "listener": list(lis), "bands_hz": list(BANDS),
@@ -339,7 +363,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     sealed = _sealed(scattering, per_room)
     met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
-           f"{rays} rays, receiver radius 0.5 m, seed {seed})", "sample_rate": FS, "scattering": scattering, "er_order": er_order,
+           f"{rays} rays, receiver radius 0.5 m, seed {seed})", "realisations": realisations, "sample_rate": FS, "scattering": scattering, "er_order": er_order,
            "er_images": er_images, "per_room": per_room,
            "onset": f"the direct sound's time along the shortest open path (the peer's {PRA_DELAY} samples later)",
            "cases": cases,

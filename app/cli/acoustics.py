@@ -171,6 +171,9 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--json", action="store_true", help="(always JSON)")
     bf.add_argument("--er-images", choices=("room", "box"), default="room",
                     help="early reflections off the listener's room's own walls (default) or its probe's box")
+    bf.add_argument("--realisations", type=A.count(1, 64), default=1,
+                    help="run both models N times (other ray seeds, other tail noise) and compare the mean energy "
+                    "decays: the models, not one draw of each (default: %(default)s)")
     bf.set_defaults(func=cmd_bench_fidelity)
     bq = bench_sub.add_parser("cues", help="does what the robot hears point where it should go? (AudioGoal homes)",
                               description="At AudioGoal episodes' starts in train homes, facing random ways: the "
@@ -209,7 +212,7 @@ def cmd_bench_fidelity(a) -> int:
     from app.bench.fidelity import bench_fidelity
 
     print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
-                                    a.er_images)))
+                                    a.er_images, a.realisations)))
     return 0
 
 

@@ -31,6 +31,7 @@ class RenderConfig:
     paths: bool = True  # sounds without line of sight also arrive around corners and through doorways
     diffraction: str = "fresnel"  # bend loss of a path: fresnel (per band, from each bend's detour) | none
     path_cell: float = 0.1  # m: the grid of the ear-height slice the paths are found on
+    tail_seed: int = 0  # the convolution tails' noise: another seed, another realisation of the same decays
 
     def __post_init__(self):
         if not (8000 <= self.sample_rate <= 192000):
@@ -57,5 +58,7 @@ class RenderConfig:
             raise ConfigError("occlusion_tolerance must be in [0, 10] m and occlusion_rays_per_block >= 1")
         if self.diffraction not in ("fresnel", "none") or not (0.02 <= self.path_cell <= 1.0):
             raise ConfigError("diffraction must be fresnel or none and path_cell within 0.02..1 m")
+        if not (0 <= self.tail_seed < 100_000):
+            raise ConfigError(f"tail_seed must be within 0..99999, got {self.tail_seed}")
         if self.hrtf_taps and not (16 <= self.hrtf_taps <= 4096):
             raise ConfigError("hrtf_taps must be within 16..4096")

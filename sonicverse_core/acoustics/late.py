@@ -18,6 +18,7 @@ from sonicverse_core.scene.materials import BANDS
 MID = slice(4, 7)  # 500 Hz - 2 kHz
 MAX_MIXING_TIME = 0.08  # s: the late tail starts at most this long after the direct sound
 SLOW_SEED = 1000  # the slowest coupled mode's tails: noise independent of the rooms' own
+SEED_STRIDE = 10_007  # RenderConfig.tail_seed's step between realisations (a tail per probe within a stride)
 PORTAL_STEP = 5.0  # degrees: the azimuth table of the neighbouring room's direction
 
 
@@ -113,11 +114,12 @@ class LateReverb:
         else:
             from sonicverse_core.acoustics.reverb import ConvolutionReverb
 
-            st.conv = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, groups=self.groups,
+            seed = cfg.tail_seed * SEED_STRIDE
+            st.conv = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed, groups=self.groups,
                                         **self.tail_colour())
             if self.modal:  # the coupled rooms' slowest mode: its own input (its shapes differ per group) and
                 # its own noise (tails of other seeds: the two add in energy, not in amplitude)
-                st.conv_slow = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=SLOW_SEED,
+                st.conv_slow = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=SLOW_SEED + seed,
                                                  groups=self.groups, **self.tail_colour())
                 st.ears = np.ones((2, cfg.block + 1), np.complex64)  # the slow tail's direction
         return st
