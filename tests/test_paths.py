@@ -194,8 +194,8 @@ def test_bench_fidelity_runs_both_simulators_and_the_sealed_rooms_meet_the_mass_
 
 
 def test_bench_fidelity_realisations_average_the_energy_not_the_parameters():
-    """``--realisations N``: our responses differ only where they are stochastic (the tail's noise), the direct
-    sound and the images stay put; the parameters of N responses are those of their mean squared band signals, so
+    """``--realisations N``: our responses differ only where they are stochastic (the bake's rays, the tail's
+    noise), the direct sound and the images stay put; the parameters of N responses are those of their mean squared band signals, so
     identical responses give the parameters of one, and the mean's energy lies between the draws'."""
     from app.bench.fidelity import FS, _cases, _onset, _ours, room_parameters
 

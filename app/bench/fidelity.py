@@ -13,6 +13,7 @@ C50 within 3 dB, EDT within 25%; sealed: D within 3 dB of the estimate.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -167,9 +168,7 @@ def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
     scene = load_scene(spec)
     t0 = time.perf_counter()
     bake = BakeConfig(scattering=scattering, per_room=per_room)
-    if realisation:
-        bake = BakeConfig(scattering=scattering, per_room=per_room, seed=bake.seed + realisation)
-    probes = scene_probes(scene, bake)
+    probes = scene_probes(scene, dataclasses.replace(bake, seed=bake.seed + realisation))
     r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order,
                                              er_images=er_images, tail_seed=realisation), probes=probes)
     t_bake = time.perf_counter() - t0
