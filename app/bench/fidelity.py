@@ -369,12 +369,12 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
            "sealed": sealed,
            "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}
     if plot:
-        _plot(cases, plot)
+        _plot(cases, plot, realisations)
         out["plot"] = plot
     return out
 
 
-def _plot(cases: list, path: str) -> None:
+def _plot(cases: list, path: str, realisations: int = 1) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -393,6 +393,8 @@ def _plot(cases: list, path: str) -> None:
         ax.set_ylabel(f"{k}, ours")
         ax.set_title(k + " (250 Hz - 4 kHz)")
     axs[0].legend(fontsize=6)
+    if realisations > 1:
+        fig.suptitle(f"expected responses: the mean band energies of {realisations} realisations of each model")
     fig.tight_layout()
     from pathlib import Path
 
