@@ -432,10 +432,16 @@ def onset_gcc_phat(audio: np.ndarray, tail: np.ndarray, sr: int, max_itd: float,
     """GCC-PHAT weighted towards onsets (the precedence effect: the first wavefront carries the direction, the
     room's reflections follow): each frame of :func:`onset_frames` weighted by its rise. Returns (weighted sum over
     lags -L..L, total weight)."""
+    return frames_gcc_phat(*onset_frames(audio, tail, frame, hop), sr, max_itd)
+
+
+def frames_gcc_phat(fr: np.ndarray, w: np.ndarray, sr: int, max_itd: float) -> tuple[np.ndarray, float]:
+    """GCC-PHAT of frames (2, k, frame) weighted by ``w`` (k,) (:func:`onset_frames`): (weighted sum over lags
+    -L..L, total weight)."""
     lag = int(math.ceil(max_itd * sr)) + 1
-    fr, w = onset_frames(audio, tail, frame, hop)
     if not np.any(w > 0):
         return np.zeros(2 * lag + 1), 0.0
+    frame = fr.shape[2]
     X = np.fft.rfft(fr[1], 2 * frame) * np.conj(np.fft.rfft(fr[0], 2 * frame))
     cc = np.fft.irfft(X / (np.abs(X) + 1e-12), 2 * frame)
     cc = np.concatenate([cc[:, -lag:], cc[:, : lag + 1]], axis=1)

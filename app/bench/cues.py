@@ -61,14 +61,13 @@ def _onset_cues(y: np.ndarray, sr: int, lo: float = 1500.0) -> tuple[float, floa
     """(ITD s, ILD dB) weighted towards onsets, as the precedence effect hears them: the 20 ms frames (every 10 ms)
     of ``y`` (2, n; its first frame is the history) whose energy rose by more than 3 dB, each weighted by the rise
     (:func:`agents.scripted.onset_frames`). NaN without any onset."""
-    from agents.scripted import onset_frames, onset_gcc_phat
+    from agents.scripted import frames_gcc_phat, onset_frames
 
     frame, hop = 320 * sr // 16000, 160 * sr // 16000
-    audio, tail = y[:, frame:], y[:, :frame]
-    cc, w = onset_gcc_phat(audio, tail, sr, MAX_ITD, frame, hop)
+    fr, wt = onset_frames(y[:, frame:], y[:, :frame], frame, hop)
+    cc, w = frames_gcc_phat(fr, wt, sr, MAX_ITD)
     if w <= 0:
         return float("nan"), float("nan")
-    fr, wt = onset_frames(audio, tail, frame, hop)
     f = np.fft.rfftfreq(frame, 1 / sr)
     hi = (np.abs(np.fft.rfft(fr, axis=2)[:, :, f >= lo]) ** 2).sum(2)  # (2, frames)
     return (int(np.argmax(cc)) - len(cc) // 2) / sr, float(10 * np.log10(((wt * hi[0]).sum() + 1e-20) /

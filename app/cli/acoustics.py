@@ -55,12 +55,15 @@ def cmd_bake(a) -> int:
     from sonicverse_core.scene.spec import load_scene
 
     scene = load_scene(a.spec)
+    caster = None
     if a.at:
         from sonicverse_core.acoustics.probes import enclosed_fraction
         from sonicverse_core.errors import ConfigError
+        from sonicverse_core.geometry.raycast import SceneRayCaster
 
         positions = np.array(a.at)
-        for p, f in zip(positions, enclosed_fraction(scene, positions)):
+        caster = SceneRayCaster(scene)  # one for the enclosure check and the bake
+        for p, f in zip(positions, enclosed_fraction(scene, positions, caster=caster)):
             if f <= 0.5:  # outside the enclosure (or the scene is open there): a probe would bake a ray escape
                 raise ConfigError(f"--at {','.join(f'{x:g}' for x in p)} is not enclosed by the scene: only "
                                   f"{f:.0%} of the rays from there hit a surface; put probes inside a room")
@@ -68,7 +71,7 @@ def cmd_bake(a) -> int:
         positions = default_probe_positions(scene, a.probes, rng=np.random.default_rng(a.seed))
     probes = bake(scene, positions, BakeConfig(rays=a.rays, seed=a.seed, scattering=a.scattering,
                                                per_room=a.per_room),
-                  progress=not a.json)
+                  caster=caster, progress=not a.json)
     if a.json:
         print(json.dumps({"scene": scene.spec, "probes": [p.to_json() for p in probes]}))
     else:
