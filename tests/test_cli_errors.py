@@ -38,6 +38,10 @@ def table(d):
         ["task", "run", "orientation-training", "--front-back", "2"],
         # numbers
         [*r, "--out", out, "--seconds", "nan"], [*r, "--out", out, "--seconds", "-1"],
+        # positions outside the scene's bounds (the home has no outdoors), a floor plan no grid fits
+        [*r[:4], "--source", "100,100,1", "--listener", "3,2,1.5", "--out", out],
+        [*r[:6], "--listener", "3,2,-1.5,90", "--out", out],
+        ["render", "shoebox:3000x3000x3", *r[2:], "--out", out],
         [*r, "--out", out, "--seconds", "inf"], [*r, "--out", out, "--sample-rate", "7"],
         [*r, "--out", out, "--block", "0"], [*r, "--out", out, "--rays", "-5"],
         ["bake", "shoebox:6x4x3", "--probes", "-3"], ["bake", "shoebox:6x4x3", "--seed", "-1"],

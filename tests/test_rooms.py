@@ -97,6 +97,23 @@ def test_a_room_lower_than_1_5_m_still_gets_a_probe_under_its_ceiling():
     assert 0.6 <= probes[0].position[2] <= 0.9 + 1e-6  # float32 once read back from the bake cache
 
 
+def test_a_floor_plan_too_large_for_the_navigation_grid_still_gets_its_probe():
+    """A 1000 x 1000 m hall needs 400M cells of the robot's 5 cm grid (refused, with advice); its probe is placed
+    on a coarser floor grid instead, in free space at ear height, near the middle."""
+    from sonicverse_core.errors import ConfigError
+    from sonicverse_core.geometry.navgrid import NavGrid
+
+    scene = load_scene("shoebox:1000x1000x3")
+    with pytest.raises(ConfigError, match=r"NavConfig\(cell=0\.2[0-9]\)"):
+        NavGrid(scene)
+    probes = default_probe_positions(scene)
+    assert probes.shape == (1, 3) and probes[0, 2] == pytest.approx(1.5)
+    assert np.allclose(probes[0, :2], 500, atol=1.0)
+    _assert_free_and_enclosed(scene, probes, [])
+    with pytest.raises(ConfigError, match="no cell up to 0.5 m fits it"):  # 3 km: too large for any grid
+        default_probe_positions(load_scene("shoebox:3000x3000x3"))
+
+
 def test_obj_objects_and_groups_load_as_separate_parts(tmp_path):
     obj = tmp_path / "two.obj"
     lines = ["mtllib none.mtl"]

@@ -18,6 +18,8 @@ def cmd_render(a) -> int:
 
     scene = load_scene(a.spec)
     src, lis = a.source, a.listener
+    _inside(scene, "--source", src[:3])
+    _inside(scene, "--listener", lis[:3])
     cfg = RenderConfig(sample_rate=a.sample_rate, block=a.block, output=a.output,
                        occlusion=not a.no_occlusion, late_reverb=not a.no_reverb)
     sig, sr = soundbank.load_sound(a.sound)
@@ -48,6 +50,18 @@ def cmd_render(a) -> int:
            "rms": np.sqrt(energy / max(n, 1)).tolist(), "subsystems": r.subsystems}
     print(json.dumps(res) if a.json else f"wrote {a.out} ({', '.join(r.subsystems)})")
     return 0
+
+
+def _inside(scene, option: str, p) -> None:
+    """A position the user gave must lie within the scene's bounds: the renderer has no ground, sky or outdoor
+    space, so a source placed outside the home would render as a faint sound through its walls, and a listener
+    there would hear the home from nowhere real."""
+    from sonicverse_core.errors import ConfigError
+
+    lo, hi = scene.bounds
+    if np.any(np.asarray(p) < lo - 1e-6) or np.any(np.asarray(p) > hi + 1e-6):
+        box = " x ".join(f"{a:g}..{b:g}" for a, b in zip(np.round(lo, 2), np.round(hi, 2)))
+        raise ConfigError(f"{option} {','.join(f'{x:g}' for x in p)} is outside the scene (x, y, z within {box} m)")
 
 
 def cmd_bake(a) -> int:

@@ -330,14 +330,24 @@ def _probe_from_json(d: dict) -> Probe:
     return Probe(arr["position"], arr["rt60"], arr["edt"], arr["box_lo"], arr["box_hi"], mats, enclosed, room)
 
 
+PLACEMENT_CELLS = 1_000_000  # cells of the probe placement's floor grid where the navigation grid's would not fit
+
+
 def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rng=None) -> np.ndarray:
     """One probe per room at the free point of that room nearest its centre (a cell of the robot's navigable
     floor, else of the free floor; a room with no free floor gets none), or ``n`` spread over the navigable floor.
     Each stands at ``height`` above the floor, lowered under a low ceiling (at most 0.3 m below it, at least half
-    way up): never inside solid geometry, never outside the enclosure. (k, 3)."""
-    from sonicverse_core.geometry.navgrid import NavGrid
+    way up): never inside solid geometry, never outside the enclosure. (k, 3).
 
-    grid = NavGrid(scene)
+    The floor is found on the robot's navigation grid (5 cm cells), or, for a floor plan too large for that grid
+    (over about 200 m x 200 m), on cells coarse enough for a million (up to 0.5 m; a room narrower than a metre
+    or so then gets no probe of its own): a probe's place needs no finer floor."""
+    from sonicverse_core.geometry.navgrid import MAX_CELL, MAX_CELLS, NavConfig, NavGrid, coarsest_cell
+
+    cfg = NavConfig()
+    if coarsest_cell(scene, MAX_CELLS) > cfg.cell:
+        cfg = NavConfig(cell=min(MAX_CELL, max(cfg.cell, coarsest_cell(scene, PLACEMENT_CELLS))))
+    grid = NavGrid(scene, cfg)
     if n is None:
         free = [grid.center_of(np.argwhere(mask)) for mask in (grid.labels == grid.main_label, grid.floor)]
         pts = []

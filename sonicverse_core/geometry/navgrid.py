@@ -29,6 +29,16 @@ _MOVES = [(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)
           if (dy, dx) != (0, 0) and max(abs(dy), abs(dx)) <= 2 and np.gcd(abs(dy), abs(dx)) == 1]
 
 
+MAX_CELL = 0.5  # m: NavConfig's largest cell
+
+
+def coarsest_cell(scene: Scene, cells: int) -> float:
+    """The cell (m, rounded up to the centimetre, with 5% to spare for the grid's margin) at which the scene's floor
+    plan fits in ``cells`` cells; may exceed ``MAX_CELL``."""
+    lo, hi = scene.bounds[0, :2], scene.bounds[1, :2]
+    return float(np.ceil(np.sqrt((hi[0] - lo[0]) * (hi[1] - lo[1]) / cells) * 100 * 1.05) / 100)
+
+
 @dataclass(frozen=True)
 class NavConfig:
     """cell (m, 0.05-0.1 sensible); robot_radius (m, TurtleBot 2: 0.18); robot_height (m): obstacles lower than
@@ -41,8 +51,8 @@ class NavConfig:
     supersample: int = 2
 
     def __post_init__(self):
-        if not (0.01 <= self.cell <= 0.5):
-            raise ConfigError(f"navigation cell size must be within 0.01..0.5 m, got {self.cell}")
+        if not (0.01 <= self.cell <= MAX_CELL):
+            raise ConfigError(f"navigation cell size must be within 0.01..{MAX_CELL} m, got {self.cell}")
         if self.robot_radius < 0 or self.robot_height <= 0:
             raise ConfigError("robot radius and height must be positive")
 
@@ -64,11 +74,12 @@ class NavGrid:
         self.shape = (int(np.ceil((hi[1] - self.origin[1]) / c)) + 2, int(np.ceil((hi[0] - self.origin[0]) / c)) + 2)
         ny, nx = self.shape
         if ny * nx > MAX_CELLS:
-            area = (hi[0] - lo[0]) * (hi[1] - lo[1])
-            suggest = np.ceil(np.sqrt(area / MAX_CELLS) * 100 * 1.05) / 100
+            suggest = coarsest_cell(scene, MAX_CELLS)
+            fix = (f"use NavConfig(cell={suggest:.2f}) or a smaller scene" if suggest <= MAX_CELL
+                   else f"no cell up to {MAX_CELL} m fits it: use a smaller scene")
             raise ConfigError(f"the scene's floor plan ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m) needs "
-                              f"{ny * nx / 1e6:.0f}M navigation cells of {c} m (at most {MAX_CELLS / 1e6:.0f}M): use "
-                              f"NavConfig(cell={suggest:.2f}) or a smaller scene")
+                              f"{ny * nx / 1e6:.0f}M navigation cells of {c} m (at most {MAX_CELLS / 1e6:.0f}M): "
+                              + fix)
         ss = config.supersample
         sub = (np.arange(ss) + 0.5) / ss
         xs = self.origin[0] + (np.arange(nx)[:, None] + sub[None]).ravel() * c
