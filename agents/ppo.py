@@ -72,13 +72,24 @@ class Dist:
         if self.on:
             import torch.distributed as dist
 
-            if not dist.is_initialized():  # NCCL for a model on CUDA (one GPU per process), gloo on the CPU
-                dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+            if not dist.is_initialized():
+                dist.init_process_group(self.backend_for(device))
             self.dist = dist
             self.rank, self.world = dist.get_rank(), dist.get_world_size()
             self.store = dist.distributed_c10d._get_default_store()
         else:
             self.rank, self.world = 0, 1
+
+    @staticmethod
+    def backend_for(device: torch.device) -> str:
+        """NCCL for a model on CUDA with a GPU per process on the node; gloo on the CPU, and where the node's
+        processes outnumber its GPUs (NCCL refuses two ranks on one device; gloo reduces CUDA tensors too)."""
+        import os
+
+        if device.type != "cuda":
+            return "gloo"
+        local = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ.get("WORLD_SIZE", "1")))
+        return "nccl" if local <= torch.cuda.device_count() else "gloo"
 
     def average_grads(self, model) -> None:
         if not self.on:

@@ -119,3 +119,13 @@ def test_bench_train_times_each_model_on_each_device(cuda, cli):
     b = json.loads(r.stdout)
     assert set(b["devices"]) == {"cpu", "cuda"} and set(b["update_speedup"]) == {"av-nav", "savi"}
     assert all(v["update_frames_per_s"] > 0 for d in b["devices"].values() for v in d.values())
+
+
+@pytest.mark.gpu
+def test_dd_ppo_processes_that_share_one_gpu_reduce_over_gloo(cuda, cli, tmp_path):
+    """Two processes on a one-GPU node: NCCL would refuse them (two ranks on one device), so they reduce over gloo,
+    on CUDA tensors, and keep identical weights."""
+    r = cli("train", "--recipe", "ppo", "--frames", "256", "--envs", "1", "--val-episodes", "0", "--nproc", "2",
+            "--device", "cuda", "--out", str(tmp_path / "dd"), "--json", check_rc=0)
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    assert res["processes"] == 2 and res["param_spread"] == 0.0

@@ -297,6 +297,20 @@ def test_dd_ppo_runs_two_processes_that_keep_identical_weights(tmp_path, cli):
     assert bad.returncode == 2 and "--recipe ppo" in bad.stderr
 
 
+def test_dd_ppo_picks_nccl_only_with_a_gpu_per_process(monkeypatch):
+    """NCCL refuses two ranks on one GPU, so processes that share a node's GPUs reduce over gloo (CUDA tensors too)."""
+    from agents.ppo import Dist
+
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    cuda = torch.device("cuda")
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "1")
+    assert Dist.backend_for(cuda) == "nccl" and Dist.backend_for(torch.device("cpu")) == "gloo"
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "4")
+    assert Dist.backend_for(cuda) == "gloo"
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 4)
+    assert Dist.backend_for(cuda) == "nccl"
+
+
 def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
     from agents.imitation import _policy_step
     from agents.models import primitives_for
