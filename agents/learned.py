@@ -19,6 +19,16 @@ def default_checkpoint(arch: str, task: str) -> Path:
     return CHECKPOINTS / f"{arch}_{task}.pt"
 
 
+def check_trained_on(path, meta: dict, task: str) -> None:
+    """A checkpoint plays (or fine-tunes on) the task it was trained on: another task's policy would run, with
+    the same sensors, and score as if it had been meant for it."""
+    from sonicverse_core.errors import ConfigError
+
+    trained = (meta.get("config") or {}).get("task")
+    if trained and trained != task:
+        raise ConfigError(f"{path} was trained on {trained}, not {task}: give a checkpoint trained on {task}")
+
+
 class AVNavAgent(Agent):
     name = "av-nav"
     arch = "av-nav"  # the checkpoint's architecture
@@ -29,6 +39,7 @@ class AVNavAgent(Agent):
 
         self.checkpoint = Path(checkpoint) if checkpoint else default_checkpoint(self.arch, task)
         self.model, self.meta = load_policy(self.checkpoint, self.arch)
+        check_trained_on(self.checkpoint, self.meta, task)
         self.size = self.model.cfg.depth_hw[0]
         self.sample = True  # draw from the policy (discrete head, the Generator); False: the most likely action
 

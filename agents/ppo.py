@@ -169,6 +169,9 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
             for _ in range(cfg.envs)]
     if cfg.init:
         model, meta = load_policy(cfg.init)  # AV-Nav, SAVi or the multi-task model
+        from agents.learned import check_trained_on
+
+        check_trained_on(cfg.init, meta, cfg.task)
         if hasattr(model, "stage"):
             model.stage(2)  # SAVi's second stage: the full memory, the encoders frozen
         size = model.cfg.depth_hw[0]

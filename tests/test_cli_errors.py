@@ -2,11 +2,14 @@
 never a traceback, and before any long work (output paths and formats are checked when the line is parsed)."""
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from app.cli import main
+
+AV_NAV = str(Path(__file__).resolve().parents[1] / "agents" / "checkpoints" / "av-nav_AudioGoal.pt")
 
 
 @pytest.fixture(scope="module")
@@ -36,6 +39,10 @@ def table(d):
         ["task", "run", "speaker-following", "--agent", "gan"],
         ["task", "run", "speaker-following", "--out", str(d / "notes.txt")],
         ["task", "run", "orientation-training", "--front-back", "2"],
+        # a checkpoint of another task: it would run with the same sensors and score as if meant for this one
+        ["task", "run", "speaker-following", "--agent", "av-nav", "--checkpoint", AV_NAV],
+        ["train", "--recipe", "ppo", "--init", AV_NAV, "--task", "SemanticAudioNav",
+         "--out", str(d / "ppo")],
         # numbers
         [*r, "--out", out, "--seconds", "nan"], [*r, "--out", out, "--seconds", "-1"],
         # positions outside the scene's bounds (the home has no outdoors), a floor plan no grid fits
