@@ -121,3 +121,39 @@ def test_a_room_that_absorbs_everything_builds_no_reverb():
     arrival = int(np.linalg.norm([3.0, 2.0, 0.0]) / 343 * FS)
     assert np.sum(y[:, arrival + 600:] ** 2) < 1e-12 * np.sum(y ** 2)  # nothing after the direct sound
     assert reverb_free(load_scene("shoebox:6x5x3")) is None
+
+
+def _edt(x):
+    """Early decay time: the Schroeder curve's first 10 dB, extrapolated to 60."""
+    edc = np.cumsum((x ** 2)[::-1])[::-1]
+    db = 10 * np.log10(edc / edc[0] + 1e-30)
+    i10 = int(np.argmax(db <= -10))
+    return -60 / np.polyfit(np.arange(i10) / FS, db[:i10], 1)[0]
+
+
+@pytest.mark.parametrize("factor", [0.7, 1.3])
+def test_the_tail_falls_first_at_the_probes_early_decay_time(factor):
+    """A probe whose bake says the first 10 dB fall faster (EDT 0.7 x RT60, as in a room with an absorbing ceiling)
+    or slower (1.3 x) than the rest: the tail's Schroeder curve falls its first 10 dB at the bake's EDT and the
+    rest at its RT60 (T30); ``tail_edt=False`` gives one slope (EDT = RT60)."""
+    probe = _probe()
+    probe.edt = RT * factor
+    for on in (True, False):
+        outs = []
+        for late in (True, False):
+            r = AcousticRenderer(None, RenderConfig(output="mono", occlusion=False, early_reflections=False,
+                                                    late_reverb=late, tail_edt=on), probes=[probe])
+            x = np.zeros(FS * 2, np.float32)
+            x[0] = 1.0
+            r.add_source(x, SRC, loop=False)
+            r.add_listener(LIS)
+            outs.append(r.render(1.6)[0][0].astype(np.float64))
+        y = outs[0] - outs[1]
+        start = int(np.argmax(np.abs(y) > 0))
+        for b in (5, 6, 7):  # 1-4 kHz: enough bandwidth for a 10 dB fit on one noise tail
+            fc = BANDS[b]
+            sos = butter(4, [fc / np.sqrt(2), fc * np.sqrt(2)], "bandpass", fs=FS, output="sos")
+            yb = sosfilt(sos, y)[start:]
+            want = RT[b] * factor if on else RT[b]
+            assert _edt(yb) == pytest.approx(want, rel=0.12), (on, fc, _edt(yb), want)
+            assert _t30(yb) == pytest.approx(RT[b], rel=0.12), (on, fc, _t30(yb))

@@ -191,6 +191,9 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--realisations", type=A.count(1, 64), default=1,
                     help="run both models N times (other ray seeds, other tail noise) and compare the mean energy "
                     "decays: the models, not one draw of each (default: %(default)s)")
+    bf.add_argument("--tail-edt", choices=("on", "off"), default="on",
+                    help="our tails fall first at the bake's early decay time, then at its RT60 (on), or at the "
+                    "RT60 alone (off) (default: %(default)s)")
     bf.set_defaults(func=cmd_bench_fidelity)
     bq = bench_sub.add_parser("cues", help="does what the robot hears point where it should go? (AudioGoal homes)",
                               description="At AudioGoal episodes' starts in train homes, facing random ways: the "
@@ -229,7 +232,7 @@ def cmd_bench_fidelity(a) -> int:
     from app.bench.fidelity import bench_fidelity
 
     print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
-                                    a.er_images, a.realisations)))
+                                    a.er_images, a.realisations, a.tail_edt == "on")))
     return 0
 
 

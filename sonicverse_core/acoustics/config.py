@@ -32,6 +32,7 @@ class RenderConfig:
     diffraction: str = "fresnel"  # bend loss of a path: fresnel (per band, from each bend's detour) | none
     path_cell: float = 0.1  # m: the grid of the ear-height slice the paths are found on
     tail_seed: int = 0  # the convolution tails' noise: another seed, another realisation of the same decays
+    tail_edt: bool = True  # the convolution tails fall at first at the probes' baked EDT, then at their RT60
 
     def __post_init__(self):
         if not (8000 <= self.sample_rate <= 192000):

@@ -82,6 +82,7 @@ class LateReverb:
         # the tails: each probe's as baked, and, with coupled rooms, each probe's room with its doorways shut
         # (0.161 V / A_own): a room's decay with its doors as they are lies between the two
         self.tail_rt = self.rt
+        self.tail_edt = np.array([p.edt for p in r.probes]) if cfg.tail_edt else None
         self.modal = r.coupling is not None and any(p.room is not None for p in r.probes)  # probes baked per room
         if self.modal:
             c = r.coupling
@@ -91,6 +92,8 @@ class LateReverb:
                     self._shut[k] = len(r.probes) + len(shut)
                     shut.append(np.maximum(0.161 * c.V[room] / c.A[room], self.rt[k]))
             self.tail_rt = np.vstack([self.rt] + shut)
+            if self.tail_edt is not None:  # a shut-door tail: one slope
+                self.tail_edt = np.vstack([self.tail_edt] + shut)
         self._colour = None
         self._portal_table = None
 
@@ -116,10 +119,12 @@ class LateReverb:
 
             seed = cfg.tail_seed * SEED_STRIDE
             st.conv = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed, groups=self.groups,
+                                        probe_edts=self.tail_edt,
                                         **self.tail_colour())
             if self.modal:  # the coupled rooms' slowest mode: its own input (its shapes differ per group) and
                 # its own noise (tails of other seeds: the two add in energy, not in amplitude)
                 st.conv_slow = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=SLOW_SEED + seed,
+                                                 probe_edts=self.tail_edt,
                                                  groups=self.groups, **self.tail_colour())
                 st.ears = np.ones((2, cfg.block + 1), np.complex64)  # the slow tail's direction
         return st

@@ -79,10 +79,29 @@ class FDNReverb:
         return out
 
 
+def decay_envelope(t: np.ndarray, rt: float, edt: float | None = None) -> np.ndarray:
+    """Amplitude envelope of a band's tail: exp(-6.9 t / rt), or with ``edt`` (the baked early decay time, taken
+    within [rt / 2, 1.5 rt]) two slopes whose Schroeder curve (the energy still to come, which the bake's EDT and
+    RT60 are fitted to) falls its first 10 dB at the EDT's slope and the rest at the RT60's: the energy density
+    starts as the one slope's would (the diffuse field's initial density does not depend on the absorption) and
+    steps by EDT / RT60 where the slopes meet (EDT / 6 in; -1.5 dB for an EDT of 0.7 RT60). A room whose absorption
+    sits on a few surfaces (an absorbing ceiling) decays faster at first than later, and its bake says by how
+    much."""
+    if edt is None or edt == rt:
+        return np.exp(-6.9078 * t / rt)
+    e = min(max(float(edt), 0.5 * rt), 1.5 * rt)
+    t1 = e / 6.0
+    return np.where(t < t1, np.exp(-6.9078 * t / e),
+                    np.sqrt(e / rt) * np.exp(-6.9078 * (t1 / e + (t - t1) / rt)))
+
+
 def synth_tail(rt60: np.ndarray, sample_rate: int, seconds: float | None = None, seed: int = 0,
-               gains: np.ndarray | None = None, coherence: np.ndarray | None = None) -> np.ndarray:
+               gains: np.ndarray | None = None, coherence: np.ndarray | None = None,
+               edt: np.ndarray | None = None) -> np.ndarray:
     """A two-channel late-reverb impulse response: octave-band noise per band of ``BANDS`` decaying at that band's
-    RT60, normalised so that a flat RT60 and unit gains give unit energy per channel. (2, n) float64.
+    RT60 (with ``edt`` (9,), at first at the band's early decay time: :func:`decay_envelope`), normalised so that a
+    flat RT60, no EDT and unit gains give unit energy per channel (an EDT shorter than the RT60 starts at the same
+    level and holds less). (2, n) float64.
 
     gains (2, 9): each ear's amplitude per band (a binaural set's diffuse-field colouring; default 1);
     coherence (9,): the interaural coherence per band (default 0: two independent tails; 1: the same tail in both
@@ -112,7 +131,7 @@ def synth_tail(rt60: np.ndarray, sample_rate: int, seconds: float | None = None,
             sos = butter(4, lo, "highpass", output="sos")
         else:
             sos = butter(4, [lo, hi], "bandpass", output="sos")
-        x = sosfilt(sos, noise, axis=-1) * np.exp(-6.9078 * t / rt[b])
+        x = sosfilt(sos, noise, axis=-1) * decay_envelope(t, rt[b], None if edt is None else edt[b])
         a, c = np.sqrt((1 + rho[b]) / 2), np.sqrt((1 - rho[b]) / 2)  # mix to the band's coherence
         out[0] += g[0, b] * (a * x[0] + c * x[1])
         out[1] += g[1, b] * (a * x[0] - c * x[1])
@@ -128,12 +147,13 @@ def _tail_length(rt60, sample_rate: int) -> int:
 
 @lru_cache(maxsize=64)
 def _partitions(rt60: tuple, sample_rate: int, B: int, P: int, seed: int, gains: tuple | None,
-                coherence: tuple | None) -> np.ndarray:
+                coherence: tuple | None, edt: tuple | None = None) -> np.ndarray:
     """A synthesised tail cut into P partitions of B samples, as spectra (2P, 2, B + 1) complex64, doubled so that
     the frequency-domain delay line never wraps; read-only (shared)."""
     g = None if gains is None else np.array(gains).reshape(2, -1)
     t = synth_tail(np.array(rt60), sample_rate, seed=seed, gains=g,
-                   coherence=None if coherence is None else np.array(coherence))[:, : P * B]
+                   coherence=None if coherence is None else np.array(coherence),
+                   edt=None if edt is None else np.array(edt))[:, : P * B]
     pad = np.zeros((2, P * B))
     pad[:, : t.shape[1]] = t
     parts = np.fft.rfft(pad.reshape(2, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, 2, nf)
@@ -150,7 +170,8 @@ class ConvolutionReverb:
     compares the two). The default late reverb."""
 
     def __init__(self, sample_rate: int, block: int, probe_rt60s, seconds: float = 3.0, seed: int = 0,
-                 gains: np.ndarray | None = None, coherence: np.ndarray | None = None, groups: int = 1):
+                 gains: np.ndarray | None = None, coherence: np.ndarray | None = None, groups: int = 1,
+                 probe_edts=None):
         from sonicverse_core.acoustics.fft import irfft_plan, rfft_plan
 
         self.B = B = block
@@ -160,8 +181,9 @@ class ConvolutionReverb:
         n = [min(_tail_length(rt, sample_rate), int(seconds * sample_rate)) for rt in probe_rt60s]
         self.P = P = max(1, int(np.ceil(max(n) / B)))
         # tails are cached across renderers (an env builds one per episode): same parameters, same partitions
-        self.H = [_partitions(key(rt), sample_rate, B, P, seed + k, key(gains), key(coherence))
-                  for k, rt in enumerate(probe_rt60s)]
+        edts = [None] * len(probe_rt60s) if probe_edts is None else probe_edts
+        self.H = [_partitions(key(rt), sample_rate, B, P, seed + k, key(gains), key(coherence), key(e))
+                  for k, (rt, e) in enumerate(zip(probe_rt60s, edts))]
         self.fdl = np.zeros((P, self.nf), np.complex64)
         self.t = 0
         self.G = groups
