@@ -4,7 +4,9 @@ recipe (behaviour cloning then PPO, as PIRLNav and SPOC do): far fewer frames th
 Each iteration drives ``frames`` steps in train homes with a mix of the expert and the policy (the expert acts with
 probability ``beta``, which decays to ``beta_min``; collection episodes end after ``rollout_steps``), labels every
 visited state with the expert's action (the navigation oracle replans whenever the robot strays from its path; on
-speaker following the expert is the oracle follower, :class:`FollowExpert`), adds them to a
+speaker following the expert is the oracle follower, :class:`FollowExpert`; where the task has a stop, a stop of the
+policy's where the expert drives on is replaced by the expert's action, so that collection reaches the goal and its
+stop label instead of ending short of it), adds them to a
 bounded dataset of episode sequences, and fits the policy to the labels (cross-entropy over the discrete head's
 primitives, or mean squared error of the continuous head's mean; truncated back-propagation through time over ``seq``
 steps), with the auxiliary goal-prediction loss (``aux_weight``) on where the goal (the person) is from the robot.
@@ -447,6 +449,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                         ep["o"].append(true_occupancy(env.unwrapped.privileged()["world"], occ_v))
                     start = False
                     act = a_exp if rng.random() < beta else a_pol
+                    if len(act) == 3 and act[2] > 0 and a_exp[2] <= 0:  # the policy's stop where the expert
+                        act = a_exp  # drives on would end the episode short of the goal: the expert drives on
                     obs, _, term, trunc, info = env.step(np.asarray(act, np.float32))
                     n += 1
                     done = term or trunc or len(ep["a"]) >= cap

@@ -94,6 +94,23 @@ def test_a_short_dagger_run_checkpoints_logs_and_plays_through_the_harness(tmp_p
     assert out["episodes"] == 1 and out["steps_per_episode"] <= 40
 
 
+def test_dagger_never_lets_the_policy_stop_short_of_the_goal(tmp_path, monkeypatch):
+    """SemanticAudioNav: a policy that always stops would end every collection episode at its first step, and the
+    data would never reach the goal's stop label; the expert drives on instead, and the episode runs on."""
+    import agents.imitation as im
+
+    def always_stop(model, obs, h, start, rng=None):
+        return np.array([0.0, 0.0, 1.0], np.float32), h
+
+    monkeypatch.setattr(im, "_policy_step", always_stop)
+    lengths = []
+    add = im.Dataset.add
+    monkeypatch.setattr(im.Dataset, "add", lambda self, ep: (lengths.append(len(ep["a"])), add(self, ep))[1])
+    train(ImitationConfig(task="SemanticAudioNav", frames=120, iterations=1, val_episodes=0, epochs=1, seed=3,
+                          beta0=0.0, beta_min=0.0, rollout_steps=60), tmp_path / "san")
+    assert lengths and min(lengths[:-1] or lengths) > 1, lengths  # not ended by the policy's stops
+
+
 def test_own_policies_plug_in_and_bad_checkpoints_fail_clearly(tmp_path, cli):
     from agents import make_agent
     from sonicverse_core.errors import ConfigError
