@@ -50,7 +50,7 @@ TASKS: dict[str, TaskSpec] = {s.name: s for s in (
              ("oracle", "gan", "gan-itd", "random"), NAV_METRICS, ("sr",), env_id="Sonicverse/AudioPointGoal-v0",
              summary="AudioGoal with a GPS + compass pointer to the goal"),
     TaskSpec("SemanticAudioNav", "semantic-audio-nav", "embodied", "sonicverse_core.tasks.nav:SemanticAudioNav",
-             ("oracle", "gan", "gan-itd", "random"), NAV_METRICS, ("sr",), env_id="Sonicverse/SemanticAudioNav-v0",
+             ("oracle", "gan", "gan-itd", "random", "av-nav", "av-nav-greedy"), NAV_METRICS, ("sr",), env_id="Sonicverse/SemanticAudioNav-v0",
              summary="the paper's task: RGB-D + audio, the sound stops, stop at the object"),
     TaskSpec("SpeakerFollowing", "speaker-following", "embodied", "sonicverse_core.tasks.following:SpeakerFollowing",
              ("scripted", "oracle", "random", "av-nav"),
