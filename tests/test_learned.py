@@ -394,13 +394,13 @@ def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_
             "--json", "--out", str(tmp_path), check_rc=0)
     res = json.loads(r.stdout)
     assert res["agent"] == "av-nav" and res["time_in_band"]["n"] == 1 and res["time_s"]["mean"] <= 3.0 + 1e-9
-    # the shipped follower keeps the band more than random on the first 6 test episodes (session 24's tails: 0.21
-    # against 0.11; 0.24 on session 23's; the README's 30 episodes: 0.244 against 0.088)
+    # the shipped follower keeps the band more than random on the first 8 test episodes (session 24's tails: 0.236
+    # against 0.095; on 6 the tails' change left 0.21 against 0.11; the README's 30 episodes: 0.244 against 0.088)
     from app.tasks.run import run_task
 
-    learned = run_task("speaker-following", "av-nav", 6, seed=0)["time_in_band"]["mean"]
-    rnd = run_task("speaker-following", "random", 6, seed=0)["time_in_band"]["mean"]
-    assert learned > rnd + 0.05, (learned, rnd)
+    learned = run_task("speaker-following", "av-nav", 8, seed=0)["time_in_band"]["mean"]
+    rnd = run_task("speaker-following", "random", 8, seed=0)["time_in_band"]["mean"]
+    assert learned > rnd + 0.1, (learned, rnd)
     r = cli("task", "run", "speaker-following", "--agent", "oracle", "--checkpoint",
             str(default_checkpoint("av-nav", "SpeakerFollowing")), "--episodes", "1")
     assert r.returncode == 2 and "--checkpoint is for learned agents" in r.stderr
