@@ -22,6 +22,16 @@ def apartment():
     return load_scene("builtin:apartment?seed=0")
 
 
+@pytest.fixture(scope="session")
+def audiogoal_random_test8():
+    """`random` on the first 8 AudioGoal test episodes of seed 0, once per session: the shipped AudioGoal policies'
+    checks compare against it (an evaluation's episode i depends on the seed and i alone, so the first 6 are the
+    same as a 6-episode run's; tests/test_learned.py checks that)."""
+    from app.tasks.evaluate import run_eval
+
+    return run_eval("AudioGoal", "random", 8, split="test", seed=0)
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

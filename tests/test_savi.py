@@ -192,14 +192,15 @@ def test_the_goal_predictor_pretrains_on_audible_frames_and_tells_categories_apa
 
 
 @pytest.mark.parametrize("agent", ["savi", "multitask"])
-def test_the_shipped_checkpoints_load_and_beat_random(agent):
-    """The shipped SAVi and multi-task AudioGoal policies on the first 6 test episodes of seed 0 (measured: 2 and 3
-    successes; random reaches none of the 30)."""
+def test_the_shipped_checkpoints_load_and_beat_random(agent, audiogoal_random_test8):
+    """The shipped SAVi and multi-task AudioGoal policies on the first 6 test episodes of seed 0 (measured on session
+    24's sound: 1 and 3 successes); random reaches none of the first 8, so none of these 6."""
     from agents.learned import default_checkpoint
     from app.tasks.evaluate import run_eval
 
     model, meta = load_policy(default_checkpoint(agent, "AudioGoal"))
     assert model.arch == agent and meta["recipe"] == "dagger" and sum(p.numel() for p in model.parameters()) < 6e6
     learned = run_eval("AudioGoal", agent, 6, split="test", seed=0)
-    rnd = run_eval("AudioGoal", "random", 6, split="test", seed=0)
-    assert learned["sr"]["mean"] >= 1 / 6 > rnd["sr"]["mean"]
+    rnd = audiogoal_random_test8
+    assert rnd["sr"]["n"] == 8 and rnd["sr"]["mean"] == 0  # none of the first 8, so none of the first 6
+    assert learned["sr"]["mean"] >= 1 / 6

@@ -101,7 +101,7 @@ def cmd_bench_train(a) -> int:
     from app.bench.train import bench_train
 
     print(json.dumps(bench_train(a.task, a.steps, tuple(a.workers), a.size, a.seed, tuple(a.agents),
-                                 tuple(a.devices))))
+                                 tuple(a.devices), a.update_batches)))
     return 0
 
 
@@ -355,6 +355,8 @@ def add_task_commands(sub, bench_sub) -> None:
     bt.add_argument("--workers", type=A.count(1, 64), nargs="+", default=[1, 2],
                     help="numbers of vector-env workers to time (default: 1 2)")
     bt.add_argument("--size", type=A.count(40, 256), default=64, help="depth image side (default: %(default)s)")
+    bt.add_argument("--update-batches", type=A.count(1, 10_000), default=4,
+                    help="imitation batches to time per update measurement, after one warm-up (default: %(default)s)")
     bt.add_argument("--devices", nargs="+", default=["cpu"], choices=("cpu", "cuda"),
                     help="devices to time the models on, side by side in the same run (default: cpu)")
     bt.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")
