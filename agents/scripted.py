@@ -80,7 +80,13 @@ class Agent:
 
 
 class RandomAgent(Agent):
+    """Uniform wheel commands from its Generator; it reads none of its observations, so the env it runs in renders
+    no camera and computes no spectrogram for it (:meth:`env_kwargs`; the episodes and scores are the same, tested)."""
+
     name = "random"
+
+    def env_kwargs(self) -> dict:
+        return {"sensors": ("pose",)}
 
     def act(self, obs, info):
         if self.stop_dim and self.env.privileged().get("at_goal"):  # the paper's random baseline stops at the goal

@@ -199,6 +199,30 @@ def test_oracle_proves_the_metrics_and_random_does_not():
     assert r["spl"]["mean"] < o["spl"]["mean"]
 
 
+def test_random_renders_nothing_it_does_not_read_and_scores_the_same():
+    """`random` asks for the pose alone (no camera, no spectrogram): the same seeds give the same drive, step for
+    step, as in the env with the task's default sensors."""
+    from agents import make_agent
+    from sonicverse_core.tasks import make_env
+
+    assert make_agent("random", np.random.default_rng(0), "SpeakerFollowing").env_kwargs() == {"sensors": ("pose",)}
+    runs = []
+    for sensors in (None, ("pose",)):
+        env = make_env("AudioGoal", split="test", scenes=HOME, sensors=sensors, max_steps=40)
+        obs, info = env.reset(seed=5)
+        ag = make_agent("random", np.random.default_rng(5), "AudioGoal")
+        ag.reset(env, obs, info)
+        poses, done = [], False
+        while not done:
+            obs, _, term, trunc, info = env.step(ag.act(obs, info))
+            poses.append(env.unwrapped.home.world.pose.copy())
+            done = term or trunc
+        assert ("depth" in obs) == (sensors is None) and ("spectrogram" in obs) == (sensors is None)
+        runs.append((np.array(poses), info["collisions"], info["path_length"]))
+        env.close()
+    assert len(runs[0][0]) == 40 and np.array_equal(runs[0][0], runs[1][0]) and runs[0][1:] == runs[1][1:]
+
+
 def test_gan_itd_agent_localises_the_sound():
     """The binaural cue the gan-itd agent relies on: its ITD estimate puts a source on the correct side."""
     from agents.scripted import GanItdAgent as GanAgent
