@@ -205,6 +205,25 @@ def test_late_send():
     np.testing.assert_array_equal(out2, out)
 
 
+def test_buildup_filter():
+    G, B, L = 4, 32, 50
+    delay = np.array([0, 7, 20, 49])
+    gain = np.array([0.6, 0.5, 0.4, 0.3], np.float32)
+    x = RNG.normal(size=(G, 3 * B)).astype(np.float32)
+    hist = np.zeros((G, L + B), np.float32)
+    out = []
+    for b in range(3):
+        s = x[:, b * B:(b + 1) * B].copy()
+        LK.buildup_filter(s, hist, delay, gain, 2)
+        out.append(s)
+    out = np.concatenate(out, axis=1)
+    want = x.astype(np.float64).copy()
+    for g in (1, 3):  # groups 0 and 2 (the listener's room) pass untouched
+        want[g] = sum(a * np.r_[np.zeros(d), x[g, :3 * B - d]] for a, d in zip(gain, delay))
+    np.testing.assert_allclose(out, want, atol=1e-5)
+    np.testing.assert_array_equal(hist[:, L:], x[:, 2 * B:])
+
+
 def test_image_taps_and_encode_taps():
     from sonicverse_core.acoustics.early import lattice
 

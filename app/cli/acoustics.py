@@ -194,6 +194,9 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--tail-edt", choices=("on", "off"), default="on",
                     help="our tails fall first at the bake's early decay time, then at its RT60 (on), or at the "
                     "RT60 alone (off) (default: %(default)s)")
+    bf.add_argument("--tail-buildup", type=A.number(0.0, 0.2), default=0.02, metavar="S",
+                    help="the late part of a source in another room builds up as 1 - e^(-t / S) (0: off; "
+                    "default: %(default)s)")
     bf.set_defaults(func=cmd_bench_fidelity)
     bq = bench_sub.add_parser("cues", help="does what the robot hears point where it should go? (AudioGoal homes)",
                               description="At AudioGoal episodes' starts in train homes, facing random ways: the "
@@ -232,7 +235,7 @@ def cmd_bench_fidelity(a) -> int:
     from app.bench.fidelity import bench_fidelity
 
     print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
-                                    a.er_images, a.realisations, a.tail_edt == "on")))
+                                    a.er_images, a.realisations, a.tail_edt == "on", a.tail_buildup)))
     return 0
 
 

@@ -9,7 +9,8 @@ import math
 import numpy as np
 
 from sonicverse_core.acoustics.kernels import farther, rows_moved
-from sonicverse_core.acoustics.late_kernels import groups_sending, late_groups, late_send, mix_ramped, portal_curve
+from sonicverse_core.acoustics.late_kernels import (buildup_filter, groups_sending, late_groups, late_send, mix_ramped,
+                                                  portal_curve)
 from sonicverse_core.acoustics.probes import SPEED_OF_SOUND
 from sonicverse_core.acoustics.sources import grown
 from sonicverse_core.acoustics.state import PerSource
@@ -36,7 +37,8 @@ class LateState(PerSource):
     __slots__ = ("send", "send_delay", "send_slow", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow",
                  "ears", "portal", "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono",
                  "fdn_out", "key", "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes",
-                 "fdn_rt", "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send", "rt_slow", "sends_slow")
+                 "fdn_rt", "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send", "rt_slow", "sends_slow",
+                 "buildup", "buildup_slow")
     ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("send_slow", (), np.float64, 0),
             ("group", (), np.int64, 0), ("use_occ", (), bool, True), ("group_moved", (), bool, False))
 
@@ -47,6 +49,7 @@ class LateState(PerSource):
         self.fdn_slow = self.mid_own = self.mid_slow = self.fdn_key = None
         self.portal_idx = -1
         self.level = None
+        self.buildup = self.buildup_slow = None  # TailBuildUp of other rooms' sends (RenderConfig.tail_buildup)
         self.sends = np.zeros((groups, block), np.float32)
         self.rt_send = np.full(groups, 0.5)  # per group the decay its sends' distance law uses (late_send)
         self.rt_slow = np.full(groups, 0.5)  # the same for the slowest coupled mode's sends
@@ -55,6 +58,50 @@ class LateState(PerSource):
         self.shapes = np.ones((groups, len(BANDS)))
         self.shapes_key = self.key = self.params = self.modal_key = self.modal_w = self.modal_shapes = None
         self.lis_room, self.room_reverbs, self.gen = -1, 0, 0
+
+
+class TailBuildUp:
+    """The late part of a sound from another room builds up (``RenderConfig.tail_buildup``, tau): energy that
+    comes through a doorway arrives as a beam and fills the receiving room over a few of its reflections, so the
+    receiving room's late energy rises as 1 - e^(-t / tau) instead of starting at full level. The sends of the
+    other rooms' groups (1 + r, r not the listener's room) pass through K taps spread over 0-3 tau, each at a fixed
+    delay jittered within its interval so that the taps do not comb; tap k carries the share of e^(-t / tau) / tau
+    that falls in its interval. The shares sum to 1: the energy that crosses is the rooms' energy balance's, only
+    later (so the late level after the build-up is higher by about tau / T', T' = RT60 / 13.8, under 1 dB in the
+    homes). A room fills faster than it empties: tau is at most T' / 3 of the tail it feeds (a dead room's own tail
+    builds up in a few milliseconds). The sends' last 3 tau are kept per group; nothing is allocated per block."""
+
+    K = 8
+
+    def __init__(self, tau: float, fs: float, groups: int, block: int):
+        self.tau, self.fs, self.B = tau, fs, block
+        u = np.linspace(0.0, 3.0, self.K + 1)  # the taps' intervals in units of tau
+        e = np.exp(-u)
+        self.share = (e[:-1] - e[1:]) / (e[0] - e[-1])
+        self._at = u[:-1] + np.random.default_rng(7).uniform(0.0, 1.0, self.K) * (u[1] - u[0])  # fixed jitter
+        self.delay = np.zeros(self.K, np.int64)
+        self.gain = np.sqrt(self.share).astype(np.float32)
+        self._g = np.zeros(self.K)
+        self.rt = None
+        self.L = int(np.round(self._at.max() * tau * fs)) + 1
+        self.hist = np.zeros((groups, self.L + block), np.float32)
+
+    def _taps(self, rt60: float) -> None:
+        te = min(self.tau, max(rt60, 0.05) / 13.8155 / 3.0)
+        np.multiply(self._at, te * self.fs, out=self._g)
+        np.round(self._g, out=self._g)
+        np.copyto(self.delay, self._g, casting="unsafe")
+
+    def process(self, sends: np.ndarray, lis_room: int, rt60: float) -> None:
+        """Filter ``sends`` (G, B) in place: every group but the listener's own room's (0, and 1 + lis_room);
+        ``rt60``: the mid-band decay (s) of the tail they feed. Allocates nothing."""
+        if self.rt != rt60:
+            self.rt = rt60
+            self._taps(rt60)
+        buildup_filter(sends, self.hist, self.delay, self.gain, 1 + lis_room if lis_room >= 0 else 0)
+
+    def reset(self) -> None:
+        self.hist[:] = 0.0
 
 
 class LateReverb:
@@ -101,6 +148,10 @@ class LateReverb:
     def state(self, cap: int) -> LateState:
         cfg = self.r.cfg
         st = LateState(cap, self.groups, cfg.block)
+        if cfg.tail_buildup > 0 and self.groups > 1:  # other rooms' sends build up (rooms known)
+            st.buildup = TailBuildUp(cfg.tail_buildup, float(cfg.sample_rate), self.groups, cfg.block)
+            if self.modal:
+                st.buildup_slow = TailBuildUp(cfg.tail_buildup, float(cfg.sample_rate), self.groups, cfg.block)
         if self.modal:  # the slowest coupled mode's sends: their distance law takes its own decay
             st.sends_slow = np.zeros((self.groups, cfg.block), np.float32)
         if cfg.reverb == "fdn":
@@ -140,7 +191,7 @@ class LateReverb:
         return self.r.direct.max_delay() + MAX_MIXING_TIME  # the send's pre-delay
 
     def reset(self, st: LateState) -> None:
-        for rev in (st.fdn, st.fdn_slow, st.conv, st.conv_slow):
+        for rev in (st.fdn, st.fdn_slow, st.conv, st.conv_slow, st.buildup, st.buildup_slow):
             if rev is not None:
                 rev.reset()
         st.level, st.key, st.fdn_key = None, None, None
@@ -205,6 +256,8 @@ class LateReverb:
                   st.send_delay[:n], fresh, sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix, st.rt_slow,
                   st.send_slow[:n], st.sends_slow[:0])
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
+        if st.buildup is not None:
+            st.buildup.process(sends, st.lis_room, lo)
         lv0 = st.level if st.level is not None else level
         st.level = level
         if st.fdn is not None:
@@ -250,6 +303,9 @@ class LateReverb:
                   st.send[:n], st.send_delay[:n], fresh, sends, float(self.r.cfg.sample_rate), SPEED_OF_SOUND, t_mix,
                   st.rt_slow, st.send_slow[:n], st.sends_slow)
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
+        if st.buildup is not None:  # the slow mode's share rings on in the source's room: it builds up as well
+            st.buildup.process(sends, lr, lo)
+            st.buildup_slow.process(st.sends_slow, lr, st.rt_slow[0])  # the slowest mode's decay, at least lo
         if st.fdn is not None:
             self._fdn_modal(st, split, lr, sends, out)
             return

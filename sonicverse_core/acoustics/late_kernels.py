@@ -1,6 +1,7 @@
 """The late reverb's compiled kernels (numba, cached on disk, GIL released; each has a NumPy twin in
-``tests/test_kernels.py``): the feedback delay network's per-sample loop, the sends to the reverb, the partitioned
-convolution's frequency-domain steps, the coupled rooms' groups and the neighbouring room's per-ear curve."""
+``tests/test_kernels.py``): the feedback delay network's per-sample loop, the sends to the reverb and their
+build-up from other rooms, the partitioned convolution's frequency-domain steps, the coupled rooms' groups and the
+neighbouring room's per-ear curve."""
 from __future__ import annotations
 
 import numpy as np
@@ -38,6 +39,27 @@ def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm, y):
         out[0, t] = o0 * norm
         out[1, t] = o1 * norm
     return pos
+
+
+@njit(**_opts)
+def buildup_filter(sends, hist, delay, gain, skip):
+    """The other rooms' sends through the build-up's taps, in place (``late.TailBuildUp``): sends (G, B); hist
+    (G, L + B) the sends' last L samples then this block's (shifted here); out[g, t] = sum_k gain[k] x[g, t -
+    delay[k]] for every group but 0 and ``skip`` (the listener's own room's)."""
+    G, B = sends.shape
+    L = hist.shape[1] - B
+    for g in range(G):
+        for t in range(L):
+            hist[g, t] = hist[g, t + B]
+        for t in range(B):
+            hist[g, L + t] = sends[g, t]
+        if g == 0 or g == skip:
+            continue
+        for t in range(B):
+            acc = 0.0
+            for k in range(len(delay)):
+                acc += gain[k] * hist[g, L + t - delay[k]]
+            sends[g, t] = acc
 
 
 @njit(**_opts)

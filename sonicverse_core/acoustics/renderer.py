@@ -33,7 +33,9 @@ listeners are added):
   at the probe's RT60 in each band, coloured by the HRTF set's diffuse field and given its interaural coherence per
   band; no discrete echoes at the onset), or a cheaper FDN; the probes of the listener's room are mixed by
   inverse-distance weights. Sources in other rooms send through the rooms' coupling (``coupling.py``: a per-band
-  energy balance through doors and walls), one send per room, filtered per band. Each source's send is delayed
+  energy balance through doors and walls), one send per room, filtered per band; another room's send builds up
+  over ``RenderConfig.tail_buildup`` (20 ms: ``late.TailBuildUp``), as energy through a doorway fills the
+  listener's room over a few reflections. Each source's send is delayed
   by its travel time plus the mixing time (sqrt(V) ms, Polack), so the tail starts after the direct sound and the
   early reflections, and falls with distance (Barron). With probes baked per room (``BakeConfig.per_room``) and
   convolution, each send feeds two tails instead, on independent noise: the listener's room's own decay (its tails
