@@ -194,7 +194,7 @@ def test_the_goal_predictor_pretrains_on_audible_frames_and_tells_categories_apa
 @pytest.mark.parametrize("agent", ["savi", "multitask"])
 def test_the_shipped_checkpoints_load_and_beat_random(agent, audiogoal_random_test8):
     """The shipped SAVi and multi-task AudioGoal policies on the first 6 test episodes of seed 0 (measured on session
-    24's sound: 1 and 3 successes); random reaches none of the first 8, so none of these 6."""
+    25's sound: 2 and 3 successes; on session 24's, 1 and 3); random reaches none of the first 8, so none of these 6."""
     from agents.learned import default_checkpoint
     from app.tasks.evaluate import run_eval
 
