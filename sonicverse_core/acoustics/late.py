@@ -74,7 +74,7 @@ class TailBuildUp:
     K = 8
 
     def __init__(self, tau: float, fs: float, groups: int, block: int):
-        self.tau, self.fs, self.B = tau, fs, block
+        self.tau, self.fs = tau, fs
         u = np.linspace(0.0, 3.0, self.K + 1)  # the taps' intervals in units of tau
         e = np.exp(-u)
         self.share = (e[:-1] - e[1:]) / (e[0] - e[-1])
