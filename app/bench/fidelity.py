@@ -18,7 +18,10 @@ import time
 
 import numpy as np
 
+from sonicverse_core.acoustics.config import RenderConfig as _RC
+
 BANDS = (250, 500, 1000, 2000, 4000)
+BUILDUP = _RC.tail_buildup  # the renderer's default: the bench's default model is the renderer's
 FS = 16_000
 C = 343.0
 
@@ -159,7 +162,8 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
 
 def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
           er_order: int = 1, per_room: bool = False, er_images: str = "room",
-          realisation: int = 0, tail_edt: bool = True, tail_buildup: float = 0.02) -> tuple[np.ndarray, float, float]:
+          realisation: int = 0, tail_edt: bool = True,
+          tail_buildup: float = BUILDUP) -> tuple[np.ndarray, float, float]:
     """Our mono impulse response; ``realisation`` > 0: another bake seed and another tail noise (0: the defaults)."""
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
@@ -290,7 +294,7 @@ def _errors(ours: dict, peer: dict, diffuse: bool) -> dict:
 
 
 def _sealed(scattering: str = "stochastic", per_room: bool = False, tail_edt: bool = True,
-            tail_buildup: float = 0.02) -> dict:
+            tail_buildup: float = BUILDUP) -> dict:
     """Sealed rooms: our level difference between the rooms per band vs D = TL - 10 log10(S / A2)."""
     from sonicverse_core.acoustics.coupling import RoomCoupling
     from sonicverse_core.acoustics.paths import path_graph
@@ -329,7 +333,7 @@ def _sealed(scattering: str = "stochastic", per_room: bool = False, tail_edt: bo
 def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0,
                    scattering: str = "stochastic", er_order: int = 1, per_room: bool = False,
                    er_images: str = "room", realisations: int = 1, tail_edt: bool = True,
-                   tail_buildup: float = 0.02) -> dict:
+                   tail_buildup: float = BUILDUP) -> dict:
     """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");
     ``er_order``, ``er_images``: our image sources' order and geometry (``RenderConfig``); ``per_room``: probes baked per room, the
     rooms' decays coupled (``BakeConfig.per_room``); ``tail_edt``: our tails fall first at the bake's EDT

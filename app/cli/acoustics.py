@@ -194,7 +194,9 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--tail-edt", choices=("on", "off"), default="on",
                     help="our tails fall first at the bake's early decay time, then at its RT60 (on), or at the "
                     "RT60 alone (off) (default: %(default)s)")
-    bf.add_argument("--tail-buildup", type=A.number(0.0, 0.2), default=0.02, metavar="S",
+    from sonicverse_core.acoustics.config import RenderConfig
+
+    bf.add_argument("--tail-buildup", type=A.number(0.0, 0.2), default=RenderConfig.tail_buildup, metavar="S",
                     help="the late part of a source in another room builds up as 1 - e^(-t / S) (0: off; "
                     "default: %(default)s)")
     bf.set_defaults(func=cmd_bench_fidelity)
