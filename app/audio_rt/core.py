@@ -172,9 +172,12 @@ class AudioCore:
         """Render the first blocks before the stream starts: JIT caches load, every occlusion ray is cast once.
         The kernels that only run once the stream does (a microphone block, a pose ramp, a door check) are called
         here too: compiled in the callback they would cost seconds, and two workers compiling the same kernel at the
-        same moment race on numba's cache files."""
+        same moment race on numba's cache files. First the renderer visits every probe and moves every door
+        (:meth:`AcousticRenderer.warm_kernels`): a kernel that only runs in another room (its walls' images, a path
+        round a corner) compiled in the callback stalled it for seconds on a fresh install, and the stream was lost."""
         from sonicverse_core.acoustics.kernels import lerp, scale_into
 
+        self.r.warm_kernels()
         for _ in range(self.warmup_blocks):
             if self.mic is not None:
                 self.mic.pending = self.mic_block  # silence, through the live path

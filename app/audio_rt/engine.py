@@ -286,8 +286,8 @@ class AudioEngine:
         t, f = self.sh.tele.copy(), self.sh.telef
         m = getattr(self, "_mark", None)
         if m is not None:
-            for k in (C.CALLBACKS, C.XRUNS, C.IN_OVERFLOW, C.OUT_UNDERFLOW, C.ERRORS, C.POSE_FRAMES, C.POSE_TORN,
-                      C.ROBOT_BLOCKS, C.ROBOT_SKIPPED):
+            for k in (C.CALLBACKS, C.FRAMES, C.XRUNS, C.IN_OVERFLOW, C.OUT_UNDERFLOW, C.ERRORS, C.POSE_FRAMES,
+                      C.POSE_TORN, C.ROBOT_BLOCKS, C.ROBOT_SKIPPED):
                 t[k] -= m[k]
         n = int(self.sh.durations.head[0])
         first = max(n - min(int(t[C.CALLBACKS]), C.DURATIONS), 0)

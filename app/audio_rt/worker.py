@@ -73,14 +73,17 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str
         sh.tele[C.STATE] = C.FAILED
         conn.send(("error", DeviceError.__name__, f"cannot open the audio stream: {str(exc).splitlines()[0]}"))
         return
+    # the supervisor (this thread) takes its real-time priority before the news goes out, so that the news says
+    # whether this machine allows one (the callback's thread takes the audio server's)
+    sched = _realtime_supervisor() if not in_thread else "in the caller's thread"
     conn.send(("ready", {"output_device": out_dev["name"], "input_device": in_dev["name"] if in_dev else None,
                          "hostapi": out_dev["hostapi"], "sample_rate": stream.samplerate, "block": cfg.block,
                          "latency_in_s": lat[0], "latency_out_s": lat[1], "warmup_s": round(warm, 3),
                          "subsystems": core.r.subsystems, "doors": core.doors, "mode": cfg.mode,
                          "pid": os.getpid(), "jack_client": client if "JACK" in out_dev["hostapi"] else None,
-                         "cpu_latency_request": "held" if qos.held else f"not held ({qos.why})"}))
+                         "cpu_latency_request": "held" if qos.held else f"not held ({qos.why})",
+                         "supervisor_scheduling": sched}))
     if not in_thread:
-        _realtime_supervisor()
         import sys
 
         sys.setswitchinterval(0.0005)  # the callback gets the GIL back within 0.5 ms after a GIL-free kernel
@@ -190,20 +193,21 @@ def _send(conn, msg) -> None:
         pass
 
 
-def _realtime(prio: int) -> None:
-    """Run this thread at SCHED_FIFO ``prio`` where allowed (otherwise as it is)."""
+def _realtime(prio: int) -> str:
+    """Run this thread at SCHED_FIFO ``prio`` where allowed (otherwise as it is); says which."""
     try:
         prio = max(1, min(prio, os.sched_get_priority_max(os.SCHED_FIFO)))
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-    except (OSError, AttributeError):
-        pass
+        return f"SCHED_FIFO {prio}"
+    except (OSError, AttributeError) as exc:
+        return f"time-shared (SCHED_FIFO refused: {getattr(exc, 'strerror', None) or exc})"
 
 
-def _realtime_supervisor() -> None:
+def _realtime_supervisor() -> str:
     """Run this (supervising) thread at a real-time priority below the audio callback's, where allowed: it holds
     the GIL for microseconds every 50 ms, and a time-shared thread preempted while holding it would stall the
     callback (priority inversion) when the machine is loaded."""
-    _realtime(4)
+    return _realtime(4)
 
 
 def main() -> None:

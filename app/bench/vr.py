@@ -220,6 +220,23 @@ def live_audio_task(task: str, seconds: float = 60.0, scene: str = "builtin:apar
             **_live_audio(scene, seconds, task=t, realtime=True, period=period)}
 
 
+def _check_stream(engine, tel: dict, seconds: float) -> None:
+    """A window in which the stream was lost or stopped calling back is an error, not a run without xruns: the
+    engine must still be running (a lost device or a dead worker is raised with the engine's news) and the stream
+    must have played at least 90% of the window's frames."""
+    from sonicverse_core.errors import DeviceError
+
+    engine.poll()
+    if engine.state != "running":
+        news = engine.events[-1] if engine.events else "no news from the worker"
+        raise DeviceError(f"the live stream is {engine.state} at the window's end ({news}): its xrun count would "
+                          f"not be a measurement")
+    want = seconds * engine.cfg.sample_rate
+    if tel["frames"] < 0.9 * want:
+        raise DeviceError(f"the live stream played {tel['frames']} of the window's {int(want)} frames (engine "
+                          f"{tel['state']}): its xrun count would not be a measurement")
+
+
 def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, period: int = 256) -> dict:
     """The loop flat out at 512x512 stereo with the live pipeline on a JACK dummy server: xruns, callbacks."""
     from app.audio_rt.jack import JackServer, jack_buffer_size
@@ -242,7 +259,9 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
             while time.perf_counter() - t0 < seconds:
                 s.frame()
             tel = s.audio.telemetry()
+            _check_stream(s.audio.engine, tel, seconds)
             platform = probe.result()
+            platform["supervisor_scheduling"] = s.audio.engine.info.get("supervisor_scheduling")
             platform.update(probe.attribute(tel["xrun_at_s"], tel["block_ms"], callback_ms=tel["xrun_callback_ms"]))
             r = s.summary()
         extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}

@@ -345,6 +345,54 @@ class AcousticRenderer:
         self.blocks += 1
         return res
 
+    def warm_kernels(self) -> int:
+        """Compile (or load from numba's cache) every kernel a block can reach, now rather than in a real-time
+        callback, where one costs 0.1-3 s and the audio server drops the client. Renders one block with every
+        listener at each probe (each room's own early reflections or a probe box's; the other rooms' sources along
+        their paths and through the coupled reverb), one with every door moved (walls and room images cast again),
+        then puts the listeners and doors back and clears every listener's state as on a fresh start: the next
+        block starts as the first would have. Returns the blocks rendered. The live audio workers call it before
+        their stream opens (``app.audio_rt``)."""
+        if not self.listeners:
+            return 0
+        saved = [(lis.position.copy(), lis.yaw, lis.pitch) for lis in self.listeners]
+        stats = dict(self.stats)
+        spots = list(self._probe_pos) if self.probes else [saved[0][0]]
+        silence = np.zeros(self.cfg.block, np.float32)
+        n = 0
+        for p in spots:
+            for lis in self.listeners:
+                lis.position = np.array(p, float)
+            for i in self._live_idx:  # a live source's block goes through its own path
+                self.sources[i].pending = silence
+            self.render_block()
+            n += 1
+        doors = self.scene.doors if self.scene is not None else []
+        if doors:
+            was = [d.open_fraction for d in doors]
+            for d, f in zip(doors, was):
+                self.scene.set_door(d.name, 0.0 if f > 0.5 else 1.0)
+            if self.occlusion is not None:
+                self.occlusion.prepare()
+            for _ in range(2):  # the move is cast in the block after it
+                self.render_block()
+                n += 1
+            for d, f in zip(doors, was):
+                self.scene.set_door(d.name, f)
+            if self.occlusion is not None:
+                self.occlusion.prepare()
+        for lis, (p, yaw, pitch) in zip(self.listeners, saved):
+            lis.position, lis.yaw, lis.pitch = p, yaw, pitch
+        for ls in self._state:
+            for part, st in zip(self.parts, ls.parts):
+                part.reset(st)
+            ls.fresh[:] = True
+            ls.any_fresh = True
+            ls.limit = 1.0
+        self.stats.clear()
+        self.stats.update(stats)
+        return n
+
     def _recover(self, ls: ListenerState) -> None:
         """A listener's block came out non-finite: clear every state that carries it into later blocks (filter
         histories, reflection history, reverb network, limiter), and any non-finite source history."""
