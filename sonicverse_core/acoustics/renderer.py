@@ -348,8 +348,8 @@ class AcousticRenderer:
     def warm_kernels(self) -> int:
         """Compile (or load from numba's cache) every kernel a block can reach, now rather than in a real-time
         callback, where one costs 0.1-3 s and the audio server drops the client. Renders one block with every
-        listener at each probe (each room's own early reflections or a probe box's; the other rooms' sources along
-        their paths and through the coupled reverb), one with every door moved (walls and room images cast again),
+        listener at each probe (each room's own early reflections; the other rooms' sources along their paths and
+        through the coupled reverb) and at a spot in no room (where a probe box's images apply), one with every door moved (walls and room images cast again),
         then puts the listeners and doors back and clears every listener's state as on a fresh start: the next
         block starts as the first would have. Returns the blocks rendered. The live audio workers call it before
         their stream opens (``app.audio_rt``)."""
@@ -357,7 +357,9 @@ class AcousticRenderer:
             return 0
         saved = [(lis.position.copy(), lis.yaw, lis.pitch) for lis in self.listeners]
         stats = dict(self.stats)
-        spots = list(self._probe_pos) if self.probes else [saved[0][0]]
+        spots = [saved[0][0]]
+        if self.probes:  # every probe (each room), and a spot in no room (a doorway, a wall: a probe box's images)
+            spots = list(self._probe_pos) + [self._probe_pos.min(axis=0) - (5.0, 5.0, 0.0)]
         silence = np.zeros(self.cfg.block, np.float32)
         n = 0
         for p in spots:
@@ -381,6 +383,8 @@ class AcousticRenderer:
                 self.scene.set_door(d.name, f)
             if self.occlusion is not None:
                 self.occlusion.prepare()
+            self.render_block()  # the doors' return is cast and the path graph refreshed here, not in the next block
+            n += 1
         for lis, (p, yaw, pitch) in zip(self.listeners, saved):
             lis.position, lis.yaw, lis.pitch = p, yaw, pitch
         for ls in self._state:
