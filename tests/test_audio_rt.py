@@ -346,9 +346,8 @@ for k, xy in enumerate(walk):  # room to room through the walls and doorways, a 
     if mic is not None:
         mic.pending = np.zeros(AudioConfig().block, np.float32)
     r.render_block()
-spots = centres
 new = {k: v for k, v in signatures().items() if v != before.get(k, 0)}
-print("ROOMS", len(spots), "DOORS", len(doors), "KERNELS", len(before), "NEW", sorted(new))
+print("ROOMS", len(centres), "DOORS", len(doors), "KERNELS", len(before), "NEW", sorted(new))
 """
 
 
@@ -356,9 +355,9 @@ def test_every_kernel_a_block_can_reach_compiles_before_the_stream_opens():
     """The worker's warm-up (``AcousticRenderer.warm_kernels``) leaves nothing to compile in the callback: in a fresh
     interpreter, walking from room to room of the apartment (through walls and doorways, where no room's images
     apply) with doors moving, a source crossing rooms and the head turning adds no signature to any of the
-    engine's compiled kernels. Before it, a kernel first reached in another
-    room (the room images of its walls) compiled in the callback on a fresh install, the callback stalled for
-    seconds and the stream was lost (``bench vr --task speaker-following`` ran 0 callbacks)."""
+    engine's compiled kernels. Before it, a kernel first reached in another room (the room images of its walls)
+    compiled in the callback on a fresh install, the callback stalled for seconds and the stream was lost
+    (``bench vr --task speaker-following`` ran 0 callbacks)."""
     import subprocess
     import sys
 

@@ -347,12 +347,12 @@ class AcousticRenderer:
 
     def warm_kernels(self) -> int:
         """Compile (or load from numba's cache) every kernel a block can reach, now rather than in a real-time
-        callback, where one costs 0.1-3 s and the audio server drops the client. Renders one block with every
-        listener at each probe (each room's own early reflections; the other rooms' sources along their paths and
-        through the coupled reverb) and at a spot in no room (where a probe box's images apply), one with every door moved (walls and room images cast again),
-        then puts the listeners and doors back and clears every listener's state as on a fresh start: the next
-        block starts as the first would have. Returns the blocks rendered. The live audio workers call it before
-        their stream opens (``app.audio_rt``)."""
+        callback, where one costs 0.1-3 s and the audio server drops the client. Renders a block with every listener
+        at each probe (each room's own early reflections; the other rooms' sources along their paths and through the
+        coupled reverb) and at a spot in no room (where a probe box's images apply), two with every door moved
+        (walls and room images cast again) and one with the doors back; then puts the listeners back and clears
+        every listener's state as on a fresh start. Returns the blocks rendered. The live audio workers call it
+        before their stream opens (``app.audio_rt``)."""
         if not self.listeners:
             return 0
         saved = [(lis.position.copy(), lis.yaw, lis.pitch) for lis in self.listeners]
