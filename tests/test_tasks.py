@@ -200,8 +200,8 @@ def test_oracle_proves_the_metrics_and_random_does_not():
 
 
 def test_random_renders_nothing_it_does_not_read_and_scores_the_same():
-    """`random` asks for the pose alone (no camera, no spectrogram): the same seeds give the same drive, step for
-    step, as in the env with the task's default sensors."""
+    """`random` asks for the pose alone (no camera, no spectrogram, no ears rendered): the same seeds give the same
+    drive, step for step, as in the env with the task's default sensors."""
     from agents import make_agent
     from sonicverse_core.tasks import make_env
 
@@ -218,6 +218,8 @@ def test_random_renders_nothing_it_does_not_read_and_scores_the_same():
             poses.append(env.unwrapped.home.world.pose.copy())
             done = term or trunc
         assert ("depth" in obs) == (sensors is None) and ("spectrogram" in obs) == (sensors is None)
+        blocks = env.unwrapped.renderer.blocks  # the ears: rendered every step, or not at all
+        assert (blocks >= 40 * env.unwrapped.sub_blocks) if sensors is None else blocks == 0, blocks
         runs.append((np.array(poses), info["collisions"], info["path_length"]))
         env.close()
     assert len(runs[0][0]) == 40 and np.array_equal(runs[0][0], runs[1][0]) and runs[0][1:] == runs[1][1:]
@@ -327,6 +329,11 @@ def test_eval_video_writes_frames_and_audio(tmp_path):
     frames = sorted(ep.glob("frame_*.png"))
     audio, sr = sf.read(ep / "audio.wav")
     assert frames and sr == 16000 and audio.shape == (len(frames) * 1600, 2)
+    # an agent that reads no audio (random: the pose alone) still gets what the robot heard on the video
+    run_eval("AudioGoal", "random", 1, seed=2, video=tmp_path / "r", env_kwargs={"scenes": HOME, "width": 32,
+                                                                               "height": 32, "max_steps": 20})
+    audio, sr = sf.read(tmp_path / "r" / "episode_0000" / "audio.wav")
+    assert audio.shape == (20 * 1600, 2) and np.sqrt(np.mean(audio ** 2)) > 1e-4
 
 
 def test_bench_env_reports_steps_per_second(cli):

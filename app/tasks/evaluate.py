@@ -45,6 +45,8 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     if video:
         kw.setdefault("render_mode", "rgb_array")
     env = make_env(task, split=split, sounds=sounds, **kw)
+    if video:
+        env.unwrapped.hear = True  # the video's sound track is what the robot heard, whatever the agent reads
     rows = []
     try:
         from sonicverse_core.progress import progress as bar

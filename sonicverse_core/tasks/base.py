@@ -294,6 +294,10 @@ class TaskEnv(gym.Env):
             self._spec = Spectrogram(self.audio_n, cfg.spec_pool)
             self._window = BinauralWindow(self.audio_n)
         self.last_audio = np.zeros((2, self.spb), np.float32)  # what the robot heard in the last step
+        # the robot's ears are rendered only where something hears them: an audio sensor, or a caller that keeps
+        # last_audio (``eval --video``) and sets ``hear``. Without them the steps are the same, step for step
+        # (nothing random is drawn for the audio), and last_audio stays silent
+        self.hear = "audio" in self.sensors or "spectrogram" in self.sensors
         n_act = 3 if self.task.stop_action else 2
         self.action_space = spaces.Box(-1.0, 1.0, (n_act,), np.float32)
         obs = {}
@@ -414,13 +418,15 @@ class TaskEnv(gym.Env):
     def _observe(self) -> dict:
         w = self.home.world
         obs = {}
-        block = self.last_audio = self._render_audio()
-        if self._window is not None:
-            self._window.push(block)
-        if "audio" in self.sensors:
-            obs["audio"] = block.copy()
-        if "spectrogram" in self.sensors:
-            obs["spectrogram"] = self._spec(self._window.buf) if self._window is not None else self._spec.push(block)
+        if self.hear:
+            block = self.last_audio = self._render_audio()
+            if self._window is not None:
+                self._window.push(block)
+            if "audio" in self.sensors:
+                obs["audio"] = block.copy()
+            if "spectrogram" in self.sensors:
+                obs["spectrogram"] = (self._spec(self._window.buf) if self._window is not None
+                                      else self._spec.push(block))
         if "rgb" in self.sensors or "depth" in self.sensors or "semantic" in self.sensors:
             img = self._camera().render(*w.camera)
             if "rgb" in self.sensors:
