@@ -11,6 +11,7 @@ An exception is caught, counted and written to the error slot, and the block pla
 """
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -256,6 +257,9 @@ class AudioCore:
                     tele[C.OUT_UNDERFLOW] += 1
                 if status.priming_output:
                     tele[C.PRIMING] += 1
+            if tele[C.CB_POLICY] < 0:  # once: the scheduling the audio server gave this thread (telemetry's news)
+                tele[C.CB_PRIORITY] = os.sched_getparam(0).sched_priority
+                tele[C.CB_POLICY] = os.sched_getscheduler(0)
             if frames != self.cfg.block:
                 raise RuntimeError(f"the device delivered {frames} frames, not {self.cfg.block}")
             if tele[C.FAULTS] > 0:  # test hook: the main side asks for a failing block

@@ -63,6 +63,7 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str
         from app.audio_rt.qos import LatencyRequest
 
         qos = LatencyRequest(0)  # held until this process ends (or the stream stops, in thread mode)
+        sh.tele[C.CB_POLICY] = -1  # the first callback writes its thread's scheduling
         stream.start()
         sh.tele[C.STATE] = C.RUNNING
     except SonicverseError as exc:

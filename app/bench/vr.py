@@ -262,6 +262,7 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
             _check_stream(s.audio.engine, tel, seconds)
             platform = probe.result()
             platform["supervisor_scheduling"] = s.audio.engine.info.get("supervisor_scheduling")
+            platform["callback_scheduling"] = tel["callback_scheduling"]
             platform.update(probe.attribute(tel["xrun_at_s"], tel["block_ms"], callback_ms=tel["xrun_callback_ms"]))
             r = s.summary()
         extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}
