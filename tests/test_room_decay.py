@@ -137,7 +137,7 @@ def test_two_like_rooms_ring_together_as_the_whole_space_does():
     pair's slowest mode is the whole space's decay (the bake over both rooms), and a listener in the second room
     hears it (T30 within 10%); the energy balance keeps the shut-door decay as the upper bound."""
     scene = load_scene("builtin:two-rooms?door=open")
-    whole = scene_probes(scene, BakeConfig())[0].rt60[5]
+    whole = scene_probes(scene, BakeConfig(per_room=False))[0].rt60[5]
     probes = scene_probes(scene, BakeConfig(per_room=True))
     own = probes[0].rt60[5]
     assert own < 0.8 * whole
@@ -166,12 +166,13 @@ def test_closing_the_door_separates_the_modes():
     assert drop > 15, drop
 
 
-def test_per_room_bakes_are_cached_apart_and_default_renders_are_unchanged():
-    """per_room is part of the bake's cache key (the two bakes differ), and without it the renderer takes the
-    whole-space path (no slow-mode reverb)."""
+def test_per_room_bakes_are_the_default_cached_apart_from_whole_space_ones():
+    """per_room is the default and part of the bake's cache key (the two bakes differ), and without it the renderer
+    takes the whole-space path (no slow-mode reverb)."""
     scene = load_scene("builtin:two-rooms?door=open")
-    a = scene_probes(scene, BakeConfig())
-    b = scene_probes(scene, BakeConfig(per_room=True))
+    assert BakeConfig().per_room
+    a = scene_probes(scene, BakeConfig(per_room=False))
+    b = scene_probes(scene)
     assert a[0].room is None and b[0].room == "west" and b[0].rt60[5] < a[0].rt60[5]
     r = AcousticRenderer(scene, RenderConfig(sample_rate=FS), probes=a)
     r.add_listener((1.0, 1.0, 1.5))

@@ -24,8 +24,9 @@ Per case (line of sight or not) and per acoustic model, at places where the refe
 
 Acoustic models, each rendered from the same places in the same run, with its cost (ms of compute per second of
 audio, for one listener): ``paths`` (direct + transmission + paths: the direction's upper bound), ``paths+er``
-(+ early reflections), ``whole-space`` (+ the late reverb of the whole connected space: the default) and
-``per-room`` (+ each room's own late reverb, coupled: ``BakeConfig(per_room=True)``). Chance is 0.5.
+(+ early reflections), ``whole-space`` (+ the late reverb of the whole connected space:
+``BakeConfig(per_room=False)``, the default before session 27) and ``per-room`` (+ each room's own late reverb,
+coupled: the default). Chance is 0.5.
 """
 from __future__ import annotations
 

@@ -46,7 +46,7 @@ def bench_rays(spec: str = "builtin:apartment", n_rays: int = 200_000, n_referen
     }
 
 
-def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = False):
+def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = True):
     """A renderer over ``spec`` with n sound-bank sources on random navigable points and one listener."""
     from assets_manifest import soundbank
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
@@ -69,7 +69,7 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = Fal
 
 
 def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:apartment", seed: int = 0,
-                sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = False,
+                sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = True,
                 reverb: str = "convolution", er_images: str = "room", er_order: int = 1) -> dict:
     """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
     reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how

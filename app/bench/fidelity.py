@@ -161,7 +161,7 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
 
 
 def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
-          er_order: int = 1, per_room: bool = False, er_images: str = "room",
+          er_order: int = 1, per_room: bool = True, er_images: str = "room",
           realisation: int = 0, tail_edt: bool = True,
           tail_buildup: float = BUILDUP) -> tuple[np.ndarray, float, float]:
     """Our mono impulse response; ``realisation`` > 0: another bake seed and another tail noise (0: the defaults)."""
@@ -293,7 +293,7 @@ def _errors(ours: dict, peer: dict, diffuse: bool) -> dict:
     return out
 
 
-def _sealed(scattering: str = "stochastic", per_room: bool = False, tail_edt: bool = True,
+def _sealed(scattering: str = "stochastic", per_room: bool = True, tail_edt: bool = True,
             tail_buildup: float = BUILDUP) -> dict:
     """Sealed rooms: our level difference between the rooms per band vs D = TL - 10 log10(S / A2)."""
     from sonicverse_core.acoustics.coupling import RoomCoupling
@@ -331,7 +331,7 @@ def _sealed(scattering: str = "stochastic", per_room: bool = False, tail_edt: bo
 
 
 def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0,
-                   scattering: str = "stochastic", er_order: int = 1, per_room: bool = False,
+                   scattering: str = "stochastic", er_order: int = 1, per_room: bool = True,
                    er_images: str = "room", realisations: int = 1, tail_edt: bool = True,
                    tail_buildup: float = BUILDUP) -> dict:
     """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");

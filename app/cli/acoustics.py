@@ -98,8 +98,18 @@ def add_audio_commands(sub, bench_sub) -> None:
     from app.cli.audio import add_commands
     from sonicverse_core.acoustics.probes import SCATTERING
 
-    per_room_help = ("bake each room's own decay and couple the rooms' decays (each room its own reverb, double "
-                     "slopes between rooms); default: each probe bakes the whole connected space")
+    def rooms(parser) -> None:
+        """Each room's own decay, coupled (the default since session 27), or the decay of the whole connected
+        space at every probe (``--whole-space``: the model before it)."""
+        g = parser.add_mutually_exclusive_group()
+        g.add_argument("--per-room", dest="per_room", action="store_true",
+                       help="bake each room's own decay and couple the rooms' decays (each room its own reverb, "
+                       "double slopes between rooms; the default)")
+        g.add_argument("--whole-space", dest="per_room", action="store_false",
+                       help="bake the decay of the whole connected space at every probe (one decay everywhere; the "
+                       "default before session 27)")
+        parser.set_defaults(per_room=True)
+
     scattering_help = ("how a bounce scatters in the bake: stochastic (the scattering coefficient as the probability "
                        "of a Lambertian bounce) or vector (blended directions, as pyroomacoustics; default: "
                        "%(default)s)")
@@ -123,7 +133,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     r.add_argument("--rays", type=A.count(100, 10_000_000), default=2000,
                    help="rays per reverb probe (default: %(default)s)")
     r.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
-    r.add_argument("--per-room", action="store_true", help=per_room_help)
+    rooms(r)
     r.add_argument("--no-occlusion", action="store_true", help="no transmission loss through walls and doors")
     r.add_argument("--no-reverb", action="store_true", help="no early reflections and no late reverb")
     r.add_argument("--json", action="store_true", help="print one JSON object")
@@ -136,7 +146,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     b.add_argument("--rays", type=A.count(100, 10_000_000), default=2000,
                    help="rays per probe (default: %(default)s)")
     b.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
-    b.add_argument("--per-room", action="store_true", help=per_room_help)
+    rooms(b)
     b.add_argument("--at", action="append", type=A.argtype(A.xyz), help="X,Y,Z of a probe (repeatable)")
     b.add_argument("--seed", type=A.seed, default=0, help="seed of the ray directions (default: %(default)s)")
     b.add_argument("--json", action="store_true", help="print one JSON object")
@@ -152,7 +162,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     ba.add_argument("--scene", default="builtin:apartment", help="scene spec (default: %(default)s)")
     ba.add_argument("--sample-rate", type=A.count(8000, 192000), default=48000, help="Hz (default: %(default)s)")
     ba.add_argument("--block", type=A.count(16, 8192), default=256, help="frames per block (default: %(default)s)")
-    ba.add_argument("--per-room", action="store_true", help=per_room_help)
+    rooms(ba)
     ba.add_argument("--reverb", choices=("convolution", "fdn"), default="convolution",
                     help="late reverb: partitioned convolution (default) or the cheaper FDN")
     ba.add_argument("--er-images", choices=("room", "box"), default="room",
@@ -182,7 +192,7 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--quick", action="store_true", help="three cases only")
     bf.add_argument("--seed", type=A.seed, default=0, help="seed of the peer's ray tracing (default: %(default)s)")
     bf.add_argument("--scattering", choices=SCATTERING, default="stochastic", help=scattering_help)
-    bf.add_argument("--per-room", action="store_true", help=per_room_help)
+    rooms(bf)
     bf.add_argument("--er-order", type=int, choices=(1, 2), default=1,
                     help="our early reflections' image-source order (default: %(default)s)")
     bf.add_argument("--json", action="store_true", help="(always JSON)")

@@ -42,8 +42,9 @@ class BakeConfig:
     """rays per probe; max_bounces; max_time (s) of tracing; hist_dt (s) of the decay histogram; seed;
     scattering: "stochastic" or "vector" (the module's docstring); per_room: a probe in one of the scene's rooms
     bakes that room's own decay (rays that leave it through an opening are lost to it) and the renderer couples
-    the rooms' decays (``coupling.RoomCoupling.late_split``); off: each probe bakes the decay of the whole
-    connected space around it."""
+    the rooms' decays (``coupling.RoomCoupling.late_split``; the default since session 27: a dead room beside a
+    live one keeps its own decay); off: each probe bakes the decay of the whole connected space around it (one
+    decay everywhere, as before)."""
 
     rays: int = 2000
     max_bounces: int = 400
@@ -51,7 +52,7 @@ class BakeConfig:
     hist_dt: float = 0.002
     seed: int = 0
     scattering: str = "stochastic"
-    per_room: bool = False
+    per_room: bool = True
 
     def __post_init__(self):
         if not (16 <= self.rays <= 10_000_000):
