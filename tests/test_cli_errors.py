@@ -32,6 +32,7 @@ def table(d):
         # argparse itself: unknown command, option, missing value, wrong choice
         [], ["frobnicate"], ["scene"], ["scene", "info"], ["scene", "info", "shoebox:6x4x3", "--nope"],
         ["eval", "--task", "Nope", "--agent", "oracle"],
+        ["bake", "shoebox:6x4x3", "--per-room", "--whole-space"],  # the two late models at once
         # the task commands
         ["task"], ["task", "run", "nonexist"], ["task", "run", "speaker-following", "--episodes", "0"],
         ["task", "run", "orientation-training", "--noise", "nan"],
