@@ -292,4 +292,10 @@ def test_cli_bench_audio_reports_realtime_fraction(cli):
     assert res.returncode == 0, res.stderr
     d = json.loads(res.stdout)  # the subsystems a scene of two rooms needs, and what they did per listener
     assert {"paths", "coupled_rooms"} <= set(d["subsystems"])
-    assert d["per_listener"]["room_reverbs_convolved"]["max"] == 1
+    # per room (the default): the listener's own room's tails with its doors open and shut, blended, and the
+    # slowest mode's; the whole space: one tail
+    assert 2 <= d["per_listener"]["room_reverbs_convolved"]["max"] <= 4
+    res = cli("bench", "audio", "--sources", "8", "--seconds", "0.3", "--scene", "builtin:two-rooms?door=open",
+              "--whole-space")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["per_listener"]["room_reverbs_convolved"]["max"] == 1

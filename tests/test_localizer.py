@@ -73,13 +73,19 @@ def test_the_gan_agent_turns_once_then_drives_to_its_estimate():
             obs, _, term, trunc, info = env.step(a)
         x, y, s_, c = obs["pose"]
         assert math.hypot(x, y) < 0.05 and ag._estimate() is not None and ag.heard > 0
-        est = ag._estimate()
-        d0 = float(np.linalg.norm(est - obs["pose"][:2]))
+        start = obs["pose"][:2].copy()
         for _ in range(30):
-            obs, _, term, trunc, info = env.step(ag.act(obs, info))
+            a = ag.act(obs, info)
+            # after every step's votes its plan leads to its estimate (within the replanning's 0.4 m; the path's
+            # last waypoint is the goal's map cell), or it circles an estimate it has reached. Where the estimate
+            # lies is the localiser's business (near chance, README): the test is that the agent goes there.
+            if ag.circle == 0:
+                assert np.linalg.norm(ag.goal - ag._estimate()) <= 0.4 + 1e-9
+                assert np.linalg.norm(ag.path[-1] - ag.goal) <= ag.CELL
+            obs, _, term, trunc, info = env.step(a)
             if term or trunc:
                 break
-        assert term or np.linalg.norm(ag._estimate() - obs["pose"][:2]) < d0 or ag.circle > 0
+        assert term or ag.circle > 0 or np.linalg.norm(obs["pose"][:2] - start) > 0.5  # it drove, it did not spin
         assert np.all(np.isfinite(ag.votes)) and ag.votes.max() > 0
     finally:
         env.close()
