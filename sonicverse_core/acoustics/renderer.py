@@ -39,9 +39,9 @@ listeners are added):
   by its travel time plus the mixing time (sqrt(V) ms, Polack), so the tail starts after the direct sound and the
   early reflections, and falls with distance (Barron). With probes baked per room (``BakeConfig.per_room``, the
   default) and convolution, each send feeds two tails instead, on independent noise: the listener's room's own
-  decay (its tails with doors open and shut, blended as its doors are) and the coupled rooms' slowest mode, with the energies of the
-  rooms' energy balance in time (:meth:`RoomCoupling.late_split`): a dead room beside a live one decays with two
-  slopes. A slowest mode ringing in another room is heard from its doorway, in part (the level differences of
+  decay (its tails with doors open and shut, blended as its doors are) and the coupled rooms' slowest mode, with
+  the energies of the rooms' energy balance in time (:meth:`RoomCoupling.late_split`): a dead room beside a live
+  one decays with two slopes. A slowest mode ringing in another room is heard from its doorway, in part (the level differences of
   that direction; ``late.LateReverb._portal``).
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
