@@ -1,0 +1,59 @@
+#!/bin/bash
+# A lent machine's live-audio check (issue 17: each task in the VR loop with live audio on a JACK dummy server for
+# 60 s, 0 xruns), for a machine with Python 3.12 and no registry. Beside this repository's root it needs:
+#   .whl      the project's wheels that the machine lacks, for cp312 (`pip download --no-deps --only-binary=:all:
+#             --python-version 3.12 ...`): sounddevice cffi pycparser pyFFTW soundfile pyrender trimesh embreex
+#             rtree pyglet freetype-py gymnasium Farama-Notifications platformdirs slab (its KEMAR file), and
+#             PyOpenGL 3.1.10 (3.1.0 fails under Python 3.12: "No array-type handler for type _ctypes.type")
+#   .jack     jackd2, PortAudio, rt-tests and their libraries as Debian .deb files (`apt-get download`)
+#   .gl       the GL loaders as .deb files
+#   .svcache  a cache filled here by the same commands (HRTF, bakes, looks, synthesised speech: no espeak-ng there)
+# The tree must stay under the tool's 64 MiB: untrack the checkpoints this needs not (agents/checkpoints/*.pt but
+# sound-localizer.pt) for the call, and ignore them in .git/info/exclude; restore both afterwards.
+# Usage: scripts/device/bench_vr.sh [SECONDS] [TASK:AGENT | audio:SOURCES ...]; one JSON line per run in
+# $OUT/bench_vr.jsonl (audio:N runs `bench audio --sources N` into $OUT/bench_audio.jsonl).
+cd "$(dirname "$0")/../.."
+SECS=${1:-60}; shift || true
+RUNS=${*:-"orientation-training:simulated speaker-following:scripted speaker-following:scripted voice-retrieval:scripted"}
+for f in .gl/*.deb; do dpkg -x "$f" /; done
+mkdir -p /opt/jk && for f in .jack/*.deb; do dpkg -x "$f" /opt/jk; done
+printf "/opt/jk/usr/lib/x86_64-linux-gnu\n/opt/jk/lib/x86_64-linux-gnu\n" > /etc/ld.so.conf.d/zz-sonicverse-jack.conf
+ldconfig
+export PATH=/opt/jk/usr/bin:$PATH JACK_DRIVER_DIR=/opt/jk/usr/lib/x86_64-linux-gnu/jack
+export ALSA_CONFIG_PATH=/opt/jk/usr/share/alsa/alsa.conf
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+  || exit 3
+sed -i "s/np.infty/np.inf/g" /tmp/site/pyrender/*.py
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYOPENGL_PLATFORM=egl PYGLET_HEADLESS=1 SONICVERSE_CACHE=$PWD/.svcache
+export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+[ -f "$__EGL_VENDOR_LIBRARY_FILENAMES" ] || unset __EGL_VENDOR_LIBRARY_FILENAMES
+nproc; uname -r; grep -m1 "model name" /proc/cpuinfo; grep -o -w -E "avx2|avx512f|fma" /proc/cpuinfo | sort -u | xargs
+ python3 -c "import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)"
+command -v jackd cyclictest || exit 4
+python3 -c "import sounddevice as sd; print(sd.get_portaudio_version()[1])" || exit 5
+T0=$SECONDS
+for r in $RUNS; do
+  t=${r%%:*}; a=${r##*:}
+  if [ "$t" = audio ]; then  # the renderer alone, offline: a core's speed against this machine's (same command)
+    python3 -m app.cli bench audio --sources "$a" --seconds 8 --json | tee -a "$OUT/bench_audio.jsonl" | cut -c1-600
+    continue
+  fi
+  timeout $((SECS + 120)) python3 -m app.cli bench vr --task "$t" --agent "$a" --audio-seconds "$SECS" \
+    > /tmp/vr.json 2> /tmp/vr.err
+  rc=$?
+  echo "$t $a rc $rc at $((SECONDS - T0)) s"; tail -3 /tmp/vr.err | cut -c1-300
+  python3 - "$rc" <<'PY' | tee -a "$OUT/bench_vr.jsonl"
+import json, sys
+try:
+    b = json.load(open("/tmp/vr.json"))
+except (OSError, ValueError):
+    print(json.dumps({"rc": int(sys.argv[1]), "error": open("/tmp/vr.err").read()[-400:]})); sys.exit()
+p = b.get("platform", {})
+print(json.dumps({k: b.get(k) for k in ("task", "agent", "loop_fps", "xruns", "callbacks", "xrun_at_s",
+                                          "xrun_callback_ms", "callback_ms", "callback_errors")}
+                 | {k: p.get(k) for k in ("supervisor_scheduling", "callback_scheduling", "wakeup_ms_max", "steal_ms",
+                                          "platform_stalls", "xruns_in_platform_stalls", "xruns_callback_overran",
+                                          "xruns_unexplained", "why")}))
+PY
+  [ $rc -eq 0 ] || exit 6  # the rest would fail alike: keep the device time for a rerun
+done
