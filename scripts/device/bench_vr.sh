@@ -7,7 +7,8 @@
 #             PyOpenGL 3.1.10 (3.1.0 fails under Python 3.12: "No array-type handler for type _ctypes.type")
 #   .jack     jackd2, PortAudio, rt-tests and their libraries as Debian .deb files (`apt-get download`)
 #   .gl       the GL loaders as .deb files
-#   .svcache  a cache filled here by the same commands (HRTF, bakes, looks, synthesised speech: no espeak-ng there)
+#   .svcache  a cache filled here by the same commands run with SONICVERSE_CACHE=$PWD/.svcache (the HRTF, bakes,
+#             looks; speech too if a run says any: there is no espeak-ng there)
 # The tree must stay under the tool's 64 MiB: untrack the checkpoints this needs not (agents/checkpoints/*.pt but
 # sound-localizer.pt) for the call, and ignore them in .git/info/exclude; restore both afterwards.
 # Usage: scripts/device/bench_vr.sh [SECONDS] [TASK:AGENT | audio:SOURCES ...]; one JSON line per run in
@@ -28,13 +29,13 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYOPENGL_PLATFORM=egl PYGLET
 export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 [ -f "$__EGL_VENDOR_LIBRARY_FILENAMES" ] || unset __EGL_VENDOR_LIBRARY_FILENAMES
 nproc; uname -r; grep -m1 "model name" /proc/cpuinfo; grep -o -w -E "avx2|avx512f|fma" /proc/cpuinfo | sort -u | xargs
- python3 -c "import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)"
+python3 -c "import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)"
 command -v jackd cyclictest || exit 4
 python3 -c "import sounddevice as sd; print(sd.get_portaudio_version()[1])" || exit 5
 T0=$SECONDS
 for r in $RUNS; do
   t=${r%%:*}; a=${r##*:}
-  if [ "$t" = audio ]; then  # the renderer alone, offline: a core's speed against this machine's (same command)
+  if [ "$t" = audio ]; then  # the renderer alone, offline: compares a core's speed with this VM's
     python3 -m app.cli bench audio --sources "$a" --seconds 8 --json | tee -a "$OUT/bench_audio.jsonl" | cut -c1-600
     continue
   fi
