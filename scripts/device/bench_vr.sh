@@ -14,6 +14,11 @@
 # Usage: scripts/device/bench_vr.sh [SECONDS] [TASK:AGENT | audio:SOURCES ...]; one JSON line per run in
 # $OUT/bench_vr.jsonl (audio:N runs `bench audio --sources N` into $OUT/bench_audio.jsonl).
 cd "$(dirname "$0")/../.."
+# It unpacks packages into / and writes /etc/ld.so.conf.d, so it runs only when asked for by name on a lent
+# machine: SV_LENT_MACHINE=1 scripts/device/NAME.sh ... (the device tool sets $OUT there, where results go).
+[ "${SV_LENT_MACHINE:-}" = 1 ] && [ -n "${OUT:-}" ] || {
+  echo "$0: for a lent device machine only: run it there as SV_LENT_MACHINE=1 $0 (with \$OUT set)" >&2; exit 2; }
+for d in .whl .jack .gl .svcache; do [ -d "$d" ] || { echo "$0: $d/ is missing beside the repository root (see the header)" >&2; exit 2; }; done
 SECS=${1:-60}; shift || true
 RUNS=${*:-"orientation-training:simulated speaker-following:scripted speaker-following:scripted voice-retrieval:scripted"}
 for f in .gl/*.deb; do dpkg -x "$f" /; done

@@ -41,8 +41,8 @@ listeners are added):
   default) and convolution, each send feeds two tails instead, on independent noise: the listener's room's own
   decay (its tails with doors open and shut, blended as its doors are) and the coupled rooms' slowest mode, with
   the energies of the rooms' energy balance in time (:meth:`RoomCoupling.late_split`): a dead room beside a live
-  one decays with two slopes. A slowest mode ringing in another room is heard from its doorway, in part (the level differences of
-  that direction; ``late.LateReverb._portal``).
+  one decays with two slopes. A slowest mode ringing in another room is heard from its doorway, in part (the
+  level differences of that direction; ``late.LateReverb._portal``).
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
