@@ -56,6 +56,8 @@ class ImitationConfig:
     stage1: float = 1 / 3  # savi / multitask: the share of iterations in SAVi's first stage (memory of one step)
     goal_steps: int = 400  # savi / multitask: batches of the goal predictor's own training per first-stage iteration
     device: str = "cpu"  # where the model trains and acts: cpu, cuda or auto (resolve_device); not part of the recipe
+    homes: int = 0  # train homes episodes are drawn from: the first N seeds of the train split (0: the split's
+    # default, DEFAULT_HOMES["train"] = 16)
     rollout_steps: int = 0  # a collection episode ends here (a stuck learner's 500 steps teach little); 0: the
     # task's own (200 on navigation, 600 on speaker following, whose episodes run 20-60 s to the catch at the end)
 
@@ -394,7 +396,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    env = make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size)
+    env = make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size,
+                   homes=cfg.homes or None)
     spec = env.observation_space["spectrogram"].shape
     adim = env.action_space.shape[0]
     if not resume:

@@ -59,6 +59,7 @@ class PPOConfig:
     critic_warmup: int = 10  # updates that train only the value head (a checkpoint from imitation has none)
     preempt: float = 0.6  # DD-PPO: the share of processes whose finishing pre-empts the rest
     device: str = "cpu"  # cpu, cuda or auto (resolve_device): where the model acts and trains
+    homes: int = 0  # train homes to draw episodes from: the split's first N (0: its default, 16)
 
 
 class Dist:
@@ -165,8 +166,8 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         raise ConfigError(f"{out / 'model.pt'} exists: choose another --out")
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng([cfg.seed, dist.rank])
-    envs = [make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size)
-            for _ in range(cfg.envs)]
+    envs = [make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size,
+                     homes=cfg.homes or None) for _ in range(cfg.envs)]
     if cfg.init:
         model, meta = load_policy(cfg.init)  # AV-Nav, SAVi or the multi-task model
         from agents.learned import check_trained_on

@@ -44,6 +44,8 @@ def table(d):
         ["task", "run", "speaker-following", "--agent", "av-nav", "--checkpoint", AV_NAV],
         ["train", "--recipe", "ppo", "--init", AV_NAV, "--task", "SemanticAudioNav",
          "--out", str(d / "ppo")],
+        ["train", "--homes", "0", "--out", str(d / "h0")], ["train", "--homes", "5001", "--out", str(d / "h1")],
+        ["train", "--agent", "sound-localizer", "--homes", "40", "--out", str(d / "h2")],
         # numbers
         [*r, "--out", out, "--seconds", "nan"], [*r, "--out", out, "--seconds", "-1"],
         # positions outside the scene's bounds (the home has no outdoors), a floor plan no grid fits

@@ -265,6 +265,26 @@ def test_training_resumes_where_it_stopped(tmp_path):
     assert "train_state" not in torch.load(tmp_path / "run" / "best.pt", weights_only=False)
 
 
+def test_imitation_draws_its_episodes_from_the_first_n_train_homes(tmp_path, monkeypatch):
+    """``homes`` (``--homes N``) widens the train homes beyond the split's default 16, and never reaches val or test."""
+    import sonicverse_core.tasks as tasks
+    from sonicverse_core.tasks.episodes import homes
+
+    made, real = [], tasks.make_env
+
+    def spy(*a, **k):
+        made.append(real(*a, **k))
+        return made[-1]
+
+    monkeypatch.setattr(tasks, "make_env", spy)
+    train(ImitationConfig(frames=60, iterations=1, val_episodes=0, epochs=1, homes=40, rollout_steps=20),
+          tmp_path / "run")
+    assert made[0].scene_specs == homes("train", 40)
+    assert not set(made[0].scene_specs) & (set(homes("val", 1000)) | set(homes("test", 1000)))
+    meta = torch.load(tmp_path / "run" / "model.pt", weights_only=False)["meta"]
+    assert meta["config"]["homes"] == 40
+
+
 def test_vector_env_workers_share_the_cores(monkeypatch):
     import os
 
@@ -366,13 +386,18 @@ def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
     assert all(a[2] < 0 for a in drawn) and len({tuple(a) for a in drawn}) > 3  # drawn, never the stop
 
 
-def test_ppo_critic_warmup_leaves_the_policy_as_imitation_left_it(tmp_path):
+def test_ppo_critic_warmup_leaves_the_policy_as_imitation_left_it(tmp_path, monkeypatch):
+    import sonicverse_core.tasks as tasks
     from agents.learned import default_checkpoint
     from agents.ppo import PPOConfig, train as train_ppo
+    from sonicverse_core.tasks.episodes import homes
 
+    made, real = [], tasks.make_env
+    monkeypatch.setattr(tasks, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
     init = default_checkpoint("av-nav", "AudioGoal")
     train_ppo(PPOConfig(frames=64, envs=1, steps=32, epochs=1, val_episodes=0, init=str(init), critic_warmup=5,
-                        seed=6), tmp_path / "w")
+                        seed=6, homes=40), tmp_path / "w")
+    assert made[0].scene_specs == homes("train", 40)  # --homes reaches PPO's envs
     tuned, meta = load(tmp_path / "w" / "model.pt")
     start, _ = load(init)
     a, b = tuned.state_dict(), start.state_dict()

@@ -148,6 +148,25 @@ def test_corrupt_bake_cache_is_baked_again(tmp_path, monkeypatch, caplog):
         caplog.clear()
 
 
+def test_a_fresh_bake_and_its_cached_copy_are_the_same_numbers(tmp_path, monkeypatch):
+    """An evaluation must not depend on whether the bake cache was warm: a fresh bake returns what the cache will give
+    back (its JSON rounds to 4 decimals), to the bit."""
+    from sonicverse_core.acoustics import probes as P
+    from sonicverse_core.scene.spec import load_scene
+
+    monkeypatch.setenv("SONICVERSE_CACHE", str(tmp_path))
+    scene = load_scene(SCENE)
+    pos = [[3.0, 2.5, 1.5], [1.234567, 1.7654321, 1.5]]
+    fresh = P.bake(scene, pos, P.BakeConfig(rays=300))
+    read = P.bake(scene, pos, P.BakeConfig(rays=300))
+    uncached = P.bake(scene, pos, P.BakeConfig(rays=300), cache=False)
+    for a, b, c in zip(fresh, read, uncached):
+        for k in ("position", "rt60", "edt", "box_lo", "box_hi"):
+            assert np.array_equal(getattr(a, k), getattr(b, k)) and np.array_equal(getattr(a, k), getattr(c, k)), k
+        assert (a.box_materials, a.enclosed, a.room) == (b.box_materials, b.enclosed, b.room)
+    assert fresh[1].position[0] == 1.2346
+
+
 def test_corrupt_hrtf_cache_is_rebuilt(tmp_path, monkeypatch, caplog):
     from assets_manifest import hrtf
 

@@ -51,7 +51,8 @@ def cmd_train(a) -> int:
                 str(a.envs), "--size", str(a.size), "--val-episodes", str(a.val_episodes), "--seed", str(a.seed),
                 "--head", a.head, "--out", a.out, "--preempt", str(a.preempt), "--kl-init", str(a.kl_init),
                 "--device", a.device]
-        argv += (["--init", a.init] if a.init else []) + (["--json"] if a.json else [])
+        argv += (["--init", a.init] if a.init else []) + (["--homes", str(a.homes)] if a.homes else [])
+        argv += ["--json"] if a.json else []
         cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={a.nproc}",
                "-m", "agents.train", *argv]
         return subprocess.run(cmd).returncode
@@ -63,8 +64,8 @@ def cmd_train(a) -> int:
     if a.agent == "sound-localizer":  # the gan baseline's localiser (supervised, not a policy)
         from agents.localizer import LocalizerTrainConfig, train as train_localizer
 
-        if a.recipe != "dagger" or a.resume:
-            raise ConfigError("the sound localiser is trained by supervision: no --recipe ppo or --resume")
+        if a.recipe != "dagger" or a.resume or a.homes:
+            raise ConfigError("the sound localiser is trained by supervision: no --recipe ppo, --resume or --homes")
         if a.task == "SpeakerFollowing":
             raise ConfigError("the sound localiser learns sounding objects' places: --task AudioGoal or "
                               "SemanticAudioNav")
@@ -75,7 +76,8 @@ def cmd_train(a) -> int:
         from agents.ppo import PPOConfig, train as train_ppo
 
         cfg = PPOConfig(task=a.task, frames=a.frames, envs=a.envs, size=a.size, val_episodes=a.val_episodes,
-                        seed=a.seed, init=a.init, head=a.head, preempt=a.preempt, kl_init=a.kl_init, device=a.device)
+                        seed=a.seed, init=a.init, head=a.head, preempt=a.preempt, kl_init=a.kl_init, device=a.device,
+                        homes=a.homes or 0)
         res = train_ppo(cfg, a.out, progress=progress)
         if res["rank"] != 0:
             return 0
@@ -84,7 +86,8 @@ def cmd_train(a) -> int:
 
         cfg = ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
                               size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
-                              aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device)
+                              aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
+                              homes=a.homes or 0)
         res = train(cfg, a.out, progress=progress, resume=a.resume)
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
@@ -325,6 +328,8 @@ def add_task_commands(sub, bench_sub) -> None:
                    "(default: 4; the sound localiser: 12 in all)")
     t.add_argument("--seq", type=A.count(2, 10_000), default=48, help="imitation: steps per training sequence "
                    "(default: %(default)s)")
+    t.add_argument("--homes", type=A.count(1, 5000), default=None,
+                   help="draw training episodes from the first N train homes (default: 16)")
     t.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
     t.add_argument("--out", default="out/train", type=A.out_dir, help="output folder (default: %(default)s)")
     t.add_argument("--resume", action="store_true", help="go on from --out's model.pt (to more --iterations)")

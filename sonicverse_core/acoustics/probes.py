@@ -81,6 +81,12 @@ class Probe:
     def volume(self) -> float:
         return float(np.prod(self.box_hi - self.box_lo))
 
+    def stored(self) -> "Probe":
+        """The probe as the bake cache keeps it (its numbers rounded as :meth:`to_json` rounds them)."""
+        d = self.to_json()
+        return Probe(*(np.asarray(d[k], np.float64) for k in ("position", "rt60", "edt", "box_lo", "box_hi")),
+                     tuple(d["box_materials"]), float(d["enclosed"]), d["room"])
+
     def to_json(self) -> dict:
         return {"position": np.round(self.position, 4).tolist(), "rt60": np.round(self.rt60, 4).tolist(),
                 "edt": np.round(self.edt, 4).tolist(), "box_lo": np.round(self.box_lo, 4).tolist(),
@@ -301,7 +307,9 @@ def bake(scene, positions, config: BakeConfig = BakeConfig(), caster=None, cache
     caster = caster or SceneRayCaster(scene)
     from sonicverse_core.progress import progress as bar
 
-    probes = [bake_probe(caster, p, config, r)
+    # as the cache will give them back: a scene sounds the same whether its bake was just made or read from disk
+    # (a sampled policy's episode diverged on the fifth decimal of a decay time)
+    probes = [bake_probe(caster, p, config, r).stored()
               for p, r in zip(bar(positions, len(positions), "baking probes", progress), rooms)]
     if path is not None:
         from sonicverse_core.storage import write_text_atomic
