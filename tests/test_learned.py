@@ -271,12 +271,7 @@ def test_imitation_draws_its_episodes_from_the_first_n_train_homes(tmp_path, mon
     from sonicverse_core.tasks.episodes import homes
 
     made, real = [], tasks.make_env
-
-    def spy(*a, **k):
-        made.append(real(*a, **k))
-        return made[-1]
-
-    monkeypatch.setattr(tasks, "make_env", spy)
+    monkeypatch.setattr(tasks, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
     train(ImitationConfig(frames=60, iterations=1, val_episodes=0, epochs=1, homes=40, rollout_steps=20),
           tmp_path / "run")
     assert made[0].scene_specs == homes("train", 40)
