@@ -241,11 +241,19 @@ def test_cross_entropy_and_the_goal_heads_fit_and_an_audio_only_policy_has_no_de
     assert out.shape == (T, B, len(primitives_for(2))) and torch.isfinite(v).all()
 
 
-def test_training_resumes_where_it_stopped(tmp_path):
+def test_training_resumes_where_it_stopped(tmp_path, monkeypatch):
+    """A run goes on with its own configuration, and draws its episodes from the first ``homes`` train homes
+    (``--homes N``), never from val or test ones."""
+    import sonicverse_core.tasks as tasks
     from sonicverse_core.errors import ConfigError
+    from sonicverse_core.tasks.episodes import homes
 
-    cfg = ImitationConfig(frames=120, iterations=2, val_episodes=0, epochs=1, seed=5, rollout_steps=40)
+    made, real = [], tasks.make_env
+    monkeypatch.setattr(tasks, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
+    cfg = ImitationConfig(frames=120, iterations=2, val_episodes=0, epochs=1, seed=5, rollout_steps=40, homes=40)
     train(cfg, tmp_path / "run")
+    assert made[0].scene_specs == homes("train", 40)
+    assert not set(made[0].scene_specs) & (set(homes("val", 1000)) | set(homes("test", 1000)))
     with pytest.raises(ConfigError, match="nothing to resume"):
         train(cfg, tmp_path / "other", resume=True)
     with pytest.raises(ConfigError, match="raise --iterations"):
@@ -259,25 +267,11 @@ def test_training_resumes_where_it_stopped(tmp_path):
     assert [int(r["iteration"]) for r in rows] == [0, 1, 2] and [r["iteration"] for r in res["log"]] == [0, 1, 2]
     assert int(rows[2]["frames"]) > int(rows[1]["frames"]) >= 80
     after = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
-    assert after["meta"]["config"]["seed"] == 5  # the run's own configuration, not the new one's
+    assert after["meta"]["config"]["seed"] == 5 and after["meta"]["config"]["homes"] == 40  # the run's own
+    assert made[-1].scene_specs == homes("train", 40)  # configuration, not the new one's
     assert after["train_state"]["iteration"] == 2 and before["train_state"]["iteration"] == 1
     assert not torch.equal(after["state"]["actor.weight"], before["state"]["actor.weight"])
     assert "train_state" not in torch.load(tmp_path / "run" / "best.pt", weights_only=False)
-
-
-def test_imitation_draws_its_episodes_from_the_first_n_train_homes(tmp_path, monkeypatch):
-    """``homes`` (``--homes N``) widens the train homes beyond the split's default 16, and never reaches val or test."""
-    import sonicverse_core.tasks as tasks
-    from sonicverse_core.tasks.episodes import homes
-
-    made, real = [], tasks.make_env
-    monkeypatch.setattr(tasks, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
-    train(ImitationConfig(frames=60, iterations=1, val_episodes=0, epochs=1, homes=40, rollout_steps=20),
-          tmp_path / "run")
-    assert made[0].scene_specs == homes("train", 40)
-    assert not set(made[0].scene_specs) & (set(homes("val", 1000)) | set(homes("test", 1000)))
-    meta = torch.load(tmp_path / "run" / "model.pt", weights_only=False)["meta"]
-    assert meta["config"]["homes"] == 40
 
 
 def test_vector_env_workers_share_the_cores(monkeypatch):
