@@ -241,15 +241,22 @@ def test_cross_entropy_and_the_goal_heads_fit_and_an_audio_only_policy_has_no_de
     assert out.shape == (T, B, len(primitives_for(2))) and torch.isfinite(v).all()
 
 
-def test_training_resumes_where_it_stopped(tmp_path, monkeypatch):
+@pytest.fixture
+def made(monkeypatch):
+    """The envs that training makes, in order (``make_env`` spied on)."""
+    import sonicverse_core.tasks as tasks
+
+    envs, real = [], tasks.make_env
+    monkeypatch.setattr(tasks, "make_env", lambda *a, **k: envs.append(real(*a, **k)) or envs[-1])
+    return envs
+
+
+def test_training_resumes_where_it_stopped(tmp_path, made):
     """A run goes on with its own configuration, and draws its episodes from the first ``homes`` train homes
     (``--homes N``), never from val or test ones."""
-    import sonicverse_core.tasks as tasks
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks.episodes import homes
 
-    made, real = [], tasks.make_env
-    monkeypatch.setattr(tasks, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
     cfg = ImitationConfig(frames=120, iterations=2, val_episodes=0, epochs=1, seed=5, rollout_steps=40, homes=40)
     train(cfg, tmp_path / "run")
     assert made[0].scene_specs == homes("train", 40)
@@ -375,14 +382,11 @@ def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
     assert all(a[2] < 0 for a in drawn) and len({tuple(a) for a in drawn}) > 3  # drawn, never the stop
 
 
-def test_ppo_critic_warmup_leaves_the_policy_as_imitation_left_it(tmp_path, monkeypatch):
-    import sonicverse_core.tasks as tasks
+def test_ppo_critic_warmup_leaves_the_policy_as_imitation_left_it(tmp_path, made):
     from agents.learned import default_checkpoint
     from agents.ppo import PPOConfig, train as train_ppo
     from sonicverse_core.tasks.episodes import homes
 
-    made, real = [], tasks.make_env
-    monkeypatch.setattr(tasks, "make_env", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
     init = default_checkpoint("av-nav", "AudioGoal")
     train_ppo(PPOConfig(frames=64, envs=1, steps=32, epochs=1, val_episodes=0, init=str(init), critic_warmup=5,
                         seed=6, homes=40), tmp_path / "w")
