@@ -28,7 +28,7 @@ def test_gym_make_in_a_fresh_interpreter_as_the_readme_says():
 
 
 @pytest.mark.parametrize("env_id", sorted(ENV_IDS.values()))
-def test_sb3_check_env_and_ppo_on_two_vectorised_envs(env_id):
+def test_sb3_check_env_and_ppo_on_two_vectorised_envs(env_id, tmp_path, monkeypatch):
     import gymnasium as gym
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_checker import check_env
@@ -41,6 +41,7 @@ def test_sb3_check_env_and_ppo_on_two_vectorised_envs(env_id):
     check_env(env.unwrapped, warn=False, skip_render_check=True)
     env.close()
     vec = make_vec_env(env_id, n_envs=2, seed=0, env_kwargs=SMALL)
+    monkeypatch.setenv("SB3_LOGDIR", str(tmp_path))  # SB3 makes its logger's folder even when silent: not in /tmp
     model = PPO("MultiInputPolicy", vec, n_steps=64, batch_size=64, n_epochs=1, seed=0, device="cpu", verbose=0)
     model.learn(total_timesteps=256)
     assert model.num_timesteps >= 256

@@ -23,7 +23,8 @@ def cmd_eval(a) -> int:
                   f"sna {row['sna']:.2f} steps {row['steps']}", file=sys.stderr)
 
     res = run_eval(a.task, a.agent, a.episodes, split=a.split, sounds=a.sounds, seed=a.seed, csv_path=csv_path,
-                   maps=a.maps, video=a.video, env_kwargs=kw, progress=progress, checkpoint=a.checkpoint)
+                   maps=a.maps, video=a.video, env_kwargs=kw, progress=progress, checkpoint=a.checkpoint,
+                   first=a.first, jobs=a.jobs)
     if a.json:
         print(json.dumps(res))
     else:
@@ -155,7 +156,10 @@ def cmd_task_run(a) -> int:
     spec = task_spec(a.name)
     if a.backend != "headless":  # the user is the person, in the VR app
         from app.tasks.run import run_in_vr
+        from sonicverse_core.errors import ConfigError
 
+        if a.first:
+            raise ConfigError("--first is for headless runs (the robot's episodes), not --backend " + a.backend)
         res = run_in_vr(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, backend=a.backend, out=a.out,
                         trials=a.trials or 10, mode=a.mode if a.mode != "mixed" else "turn",
                         hrtf=a.hrtf == "on", reverb=a.reverb == "on", scene=a.scene)
@@ -176,7 +180,7 @@ def cmd_task_run(a) -> int:
                    "render": not a.no_render, "hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
     res = run_task(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, out=a.out, maps=a.maps,
                    env_kwargs=kw, trials=a.trials, participant=participant, task_kwargs=task_kw,
-                   progress=not a.json, checkpoint=a.checkpoint)
+                   progress=not a.json, checkpoint=a.checkpoint, first=a.first)
     if a.json:
         print(json.dumps(res))
     else:
@@ -211,6 +215,8 @@ def add_task_commands(sub, bench_sub) -> None:
     tr.add_argument("--checkpoint", default=None, type=A.in_file(".pt"),
                     help="a learned agent's checkpoint (default: the shipped agents/checkpoints/ARCH_TASK.pt)")
     tr.add_argument("--episodes", type=A.count(1, 100_000), default=10, help="episodes (default: %(default)s)")
+    tr.add_argument("--first", type=A.count(0, 10**9), default=0,
+                    help="robot tasks: start at this episode (episode i depends on --seed and i alone; default: 0)")
     tr.add_argument("--trials", type=A.count(1, 1_000_000), default=None,
                     help="trials per block (orientation training; default: --episodes)")
     tr.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")
@@ -281,6 +287,12 @@ def add_task_commands(sub, bench_sub) -> None:
     e.add_argument("--checkpoint", default=None, type=A.in_file(".pt"),
                    help="a learned agent's checkpoint (default: the shipped agents/checkpoints/ARCH_TASK.pt)")
     e.add_argument("--episodes", type=A.count(1, 100_000), default=20, help="number of episodes (default: %(default)s)")
+    e.add_argument("--first", type=A.count(0, 10**9), default=0,
+                   help="start at this episode: episode i depends on --seed and i alone, so a long evaluation can be "
+                   "split into parts that give the rows of one run (default: %(default)s)")
+    e.add_argument("--jobs", type=A.count(1, 256), default=1,
+                   help="play the episodes in this many processes, the cores shared between them; the same rows and "
+                   "metrics as one process (default: %(default)s)")
     e.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")
     e.add_argument("--sounds", default="heard", choices=("heard", "unheard"), help="sound set (default: heard)")
     e.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")

@@ -33,25 +33,45 @@ def make_env(task: str, **kwargs):
 
 def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: str = "heard", seed: int = 0,
              csv_path: str | Path | None = None, maps: str | Path | None = None, video: str | Path | None = None,
-             env_kwargs: dict | None = None, progress=None, checkpoint=None) -> dict:
+             env_kwargs: dict | None = None, progress=None, checkpoint=None, first: int = 0, jobs: int = 1) -> dict:
+    """Episodes ``first`` .. ``first + episodes - 1`` of the run with ``seed``. Episode i depends on the seed and i
+    alone, so ``jobs`` > 1 plays them in that many processes (interleaved: job j plays every jobs-th, from the j-th)
+    and gives the rows, the CSV and the metrics a single process gives (tested); the cores are shared out between
+    the jobs' renderers and math libraries. ``progress(i, row)`` is called in this process as each episode ends."""
     from agents import make_agent
-    from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
 
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
+    if first < 0:
+        raise ConfigError(f"--first must be >= 0, got {first}")
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
     kw = dict(env_kwargs or {})
     probe = make_agent(agent, np.random.default_rng(seed), task, checkpoint=checkpoint)  # fails early, names its env
     kw.update(getattr(probe, "env_kwargs", lambda: {})())
     if video:
         kw.setdefault("render_mode", "rgb_array")
+    indices = list(range(first, first + episodes))
+    args = (task, agent, split, sounds, seed, kw, maps, video, checkpoint)
+    if jobs > 1 and episodes > 1:
+        rows = _play_in_jobs(indices, min(jobs, episodes), args, progress)
+    else:
+        rows = _play(indices, *args, report=progress, bar=progress is not None)
+    return _summary(rows, task, agent, split, sounds, seed, first, csv_path)
+
+
+def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint, report=None,
+          bar: bool = False) -> list[dict]:
+    """Play the episodes ``indices`` in one env; their CSV rows in that order. ``report(i, row)`` after each."""
+    from agents import make_agent
+    from sonicverse_core.progress import progress
+
     env = make_env(task, split=split, sounds=sounds, **kw)
     if video:
         env.unwrapped.hear = True  # the video's sound track is what the robot heard, whatever the agent reads
     rows = []
     try:
-        from sonicverse_core.progress import progress as bar
-
-        for i in bar(range(episodes), desc=f"{task} {agent}", enabled=progress is not None):
+        for i in progress(indices, desc=f"{task} {agent}", enabled=bar):
             s = episode_seed(seed, i)
             obs, info = env.reset(seed=s)
             ag = make_agent(agent, np.random.default_rng(s), task, checkpoint=checkpoint)
@@ -78,10 +98,96 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
                 _write_map(env, ep, np.array(traj), Path(maps) / f"episode_{i:04d}.png", m)
             if video:
                 _write_video(Path(video) / f"episode_{i:04d}", frames, sound, env.cfg.sample_rate)
+            if report:
+                report(i, row)
+    finally:
+        env.close()
+    return rows
+
+
+def _job(queue, j: int, threads: int, indices, args) -> None:
+    """One job of :func:`_play_in_jobs` (a spawned process): its rows go back one by one, then ("done", j), or
+    ("error", j, error class name, message)."""
+    import os
+
+    for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[k] = str(threads)
+    try:
+        import torch
+
+        torch.set_num_threads(threads)
+        _play(indices, *args, report=lambda i, row: queue.put(("row", i, row)))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it there
+        queue.put(("error", j, type(exc).__name__, str(exc).strip().splitlines()[0] if str(exc).strip() else
+                   type(exc).__name__))
+        return
+    queue.put(("done", j))
+
+
+def _play_in_jobs(indices, jobs: int, args, progress) -> list[dict]:
+    """Play ``indices`` in ``jobs`` spawned processes (each its own env, GL context and agent); the rows in episode
+    order. A job that fails or dies stops the others, and its error is raised here."""
+    import multiprocessing as mp
+
+    from sonicverse_core.progress import progress as bar
+    from sonicverse_core.tasks import worker_threads
+
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    procs = [ctx.Process(target=_job, args=(q, j, worker_threads(jobs), indices[j::jobs], args), daemon=True)
+             for j in range(jobs)]
+    for p in procs:
+        p.start()
+    rows = {}
+    try:
+        for i, row in bar(_arrivals(q, procs), total=len(indices), desc=f"{args[0]} {args[1]} ({jobs} jobs)",
+                          enabled=progress is not None):
+            rows[i] = row
             if progress:
                 progress(i, row)
     finally:
-        env.close()
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        for p in procs:
+            p.join(timeout=10)
+        q.close()
+    return [rows[i] for i in sorted(rows)]
+
+
+def _arrivals(q, procs):
+    """Yield (episode, row) from the jobs' queue until every job is done; raise a job's error here."""
+    import queue as queues
+
+    from sonicverse_core import errors
+
+    done = set()
+    while len(done) < len(procs):
+        try:
+            msg = q.get(timeout=1.0)
+        except queues.Empty:
+            dead = [j for j, p in enumerate(procs) if j not in done and p.exitcode is not None]
+            if dead and q.empty():
+                raise errors.SonicverseError(f"evaluation job {dead[0]} died (exit code {procs[dead[0]].exitcode})"
+                                             " before its episodes were played")
+            continue
+        if msg[0] == "row":
+            yield msg[1], msg[2]
+        elif msg[0] == "done":
+            done.add(msg[1])
+        else:
+            _, j, name, text = msg
+            if name == "KeyboardInterrupt":
+                raise KeyboardInterrupt
+            cls = getattr(errors, name, None)
+            if isinstance(cls, type) and issubclass(cls, errors.SonicverseError):
+                raise cls(text)
+            raise errors.SonicverseError(f"evaluation job {j} failed: {name}: {text}")
+
+
+def _summary(rows, task, agent, split, sounds, seed, first, csv_path) -> dict:
+    from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
+
     if csv_path:
         p = Path(csv_path)
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -89,7 +195,8 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
             w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
             w.writeheader()
             w.writerows(rows)
-    out = {"task": task, "agent": agent, "episodes": len(rows), "split": split, "sounds": sounds, "seed": seed}
+    out = {"task": task, "agent": agent, "episodes": len(rows), "first": first, "split": split, "sounds": sounds,
+           "seed": seed}
     for key, col in (("sr", "success"), ("spl", "spl"), ("sna", "sna"), ("soft_spl", "soft_spl"),
                      ("distance_to_goal", "distance_to_goal")):
         out[key] = (rate_ci95 if key == "sr" else mean_ci95)(r[col] for r in rows)

@@ -37,22 +37,27 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str = "test", seed: int = 0,
              out: str | Path | None = None, maps: str | Path | None = None, env_kwargs: dict | None = None,
              trials: int | None = None, participant: dict | None = None, task_kwargs: dict | None = None,
-             progress: bool = False, checkpoint=None) -> dict:
-    """``checkpoint``: a learned agent's weights (default: the one shipped for the task)."""
+             progress: bool = False, checkpoint=None, first: int = 0) -> dict:
+    """``checkpoint``: a learned agent's weights (default: the one shipped for the task). Robot tasks play episodes
+    ``first`` .. ``first + episodes - 1`` of the run with ``seed`` (episode i depends on the seed and i alone)."""
     spec = task_spec(task)
     agent = agent or spec.agents[0]
+    if first < 0:
+        raise ConfigError(f"--first must be >= 0, got {first}")
     if spec.kind == "trials":
+        if first:
+            raise ConfigError(f"--first is for robot tasks' episodes; {spec.cli} runs trials")
         if agent not in spec.agents:
             raise ConfigError(f"unknown agent '{agent}' for {spec.cli}; use one of {', '.join(spec.agents)}")
         if checkpoint is not None:
             raise ConfigError(f"{spec.cli} has no learned agents: no --checkpoint")
         return _run_trials(spec, agent, trials or episodes, seed, out, participant or {}, task_kwargs or {},
                            progress)
-    return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress, checkpoint)
+    return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress, checkpoint, first)
 
 
 def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: int, out, maps, kw: dict,
-                  progress: bool, checkpoint=None) -> dict:
+                  progress: bool, checkpoint=None, first: int = 0) -> dict:
     from agents import make_agent
     from sonicverse_core.progress import progress as bar
     from sonicverse_core.tasks import make_env
@@ -66,7 +71,7 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
     rows = []
     csv_path = Path(out) / f"{spec.cli}_{agent.replace(':', '.')}_{split}_s{seed}.csv" if out else None
     try:
-        for i in bar(range(episodes), desc=f"{spec.cli} {agent}", enabled=progress):
+        for i in bar(range(first, first + episodes), desc=f"{spec.cli} {agent}", enabled=progress):
             s = episode_seed(seed, i)
             obs, info = env.reset(seed=s)
             ag = make_agent(agent, np.random.default_rng(s), spec.name, checkpoint=checkpoint)
@@ -91,7 +96,7 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
                            Path(maps) / f"episode_{i:04d}.png", spec, m)
     finally:
         env.close()
-    res = {"task": spec.cli, "agent": agent, "episodes": len(rows), "split": split, "seed": seed}
+    res = {"task": spec.cli, "agent": agent, "episodes": len(rows), "first": first, "split": split, "seed": seed}
     for key in spec.metrics:
         col = "success" if key == "sr" else key
         res[key] = (rate_ci95 if key in spec.rates else mean_ci95)(r[col] for r in rows)
