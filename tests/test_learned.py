@@ -3,6 +3,10 @@ reset at episode starts, behaviour cloning that fits the expert, a short DAgger 
 evaluation through the harness), the `module:callable` hook, and clear errors for bad checkpoints."""
 import csv
 import json
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -465,9 +469,37 @@ def test_an_evaluations_episodes_depend_on_the_seed_and_index_alone(tmp_path):
     assert f == d and sorted(seen) == [0, 1, 2, 3] and two["episodes"] == 4
 
 
+def test_a_stopped_evaluation_keeps_its_episodes_and_resumes(tmp_path):
+    """The CSV is rewritten after every episode: SIGTERM in the middle of a run ends it with one line that says
+    how many episodes the CSV keeps and how to go on; `--resume` (here with `--jobs 2`) plays the rest, and the CSV
+    is the uninterrupted run's, byte for byte. A CSV of another evaluation is refused."""
+    from conftest import ROOT, run_cli
+
+    base = ["eval", "--task", "AudioGoal", "--agent", "random", "--episodes", "6", "--seed", "5", "--max-steps",
+            "300"]
+    whole, part = tmp_path / "whole.csv", tmp_path / "part.csv"
+    run_cli(*base, "--csv", str(whole), "--json", check_rc=0)
+    exe = [sys.executable, "-m", "app.cli", *base, "--csv", str(part)]
+    proc = subprocess.Popen(exe, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not (part.exists() and len(part.read_text().splitlines()) >= 2):  # a finished episode (polled)
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    kept = len(part.read_text().splitlines()) - 1
+    last = err.strip().splitlines()[-1]  # (the lines before: an episode each, as a log shows them)
+    assert proc.returncode == 2 and last.startswith("sonicverse: error: terminated (SIGTERM)"), err
+    assert 1 <= kept < 6 and f"keeps its {kept} finished episode" in last and "--resume" in last
+    r = run_cli(*base, "--csv", str(part), "--resume", "--jobs", "2", "--json", check_rc=0)
+    assert part.read_bytes() == whole.read_bytes() and json.loads(r.stdout)["episodes"] == 6
+    r = run_cli(*base[:-4], "--seed", "6", "--max-steps", "300", "--csv", str(part), "--resume")
+    assert r.returncode == 2 and "its seed differs" in r.stderr and part.read_bytes() == whole.read_bytes()
+
+
 def test_a_failing_evaluation_job_stops_the_run_with_its_own_error(tmp_path, cli, monkeypatch):
-    """An agent's bad action in one of `--jobs` processes reaches the user as that error, one line, exit 2; no CSV
-    of a partial run is written."""
+    """An agent's bad action in one of `--jobs` processes reaches the user as that error, one line, exit 2; no
+    episode finished, so no CSV is written."""
     (tmp_path / "nan_policy.py").write_text(
         "import numpy as np\n\n\nclass Policy:\n    def __init__(self, rng):\n        pass\n\n"
         "    def reset(self, env, obs, info):\n        pass\n\n"

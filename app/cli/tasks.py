@@ -24,7 +24,7 @@ def cmd_eval(a) -> int:
 
     res = run_eval(a.task, a.agent, a.episodes, split=a.split, sounds=a.sounds, seed=a.seed, csv_path=csv_path,
                    maps=a.maps, video=a.video, env_kwargs=kw, progress=progress, checkpoint=a.checkpoint,
-                   first=a.first, jobs=a.jobs)
+                   first=a.first, jobs=a.jobs, resume=a.resume)
     if a.json:
         print(json.dumps(res))
     else:
@@ -301,6 +301,9 @@ def add_task_commands(sub, bench_sub) -> None:
     e.add_argument("--csv", default=None, type=A.out_file(".csv"), help="per-episode CSV (default: out/eval/TASK_AGENT_SPLIT_SOUNDS_sSEED.csv)")
     e.add_argument("--maps", default=None, metavar="DIR", type=A.out_dir, help="write a top-down trajectory map per episode")
     e.add_argument("--video", default=None, metavar="DIR", type=A.out_dir, help="write frames (PNG) + audio (WAV) per episode")
+    e.add_argument("--resume", action="store_true",
+                   help="continue the evaluation whose CSV --csv names (it is rewritten after every episode): play "
+                   "only the episodes it lacks; refused if it holds another evaluation")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=cmd_eval)
 

@@ -33,12 +33,18 @@ def make_env(task: str, **kwargs):
 
 def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: str = "heard", seed: int = 0,
              csv_path: str | Path | None = None, maps: str | Path | None = None, video: str | Path | None = None,
-             env_kwargs: dict | None = None, progress=None, checkpoint=None, first: int = 0, jobs: int = 1) -> dict:
+             env_kwargs: dict | None = None, progress=None, checkpoint=None, first: int = 0, jobs: int = 1,
+             resume: bool = False) -> dict:
     """Episodes ``first`` .. ``first + episodes - 1`` of the run with ``seed``. Episode i depends on the seed and i
     alone, so ``jobs`` > 1 plays them in that many processes (interleaved: job j plays every jobs-th, from the j-th)
     and gives the rows, the CSV and the metrics a single process gives (tested); the cores are shared out between
-    the jobs' renderers and math libraries. ``progress(i, row)`` is called in this process as each episode ends."""
+    the jobs' renderers and math libraries. ``progress(i, row)`` is called in this process as each episode ends.
+
+    The CSV is rewritten (atomically) after every episode, beside a ``.json`` of what was evaluated: an interrupted
+    or killed run keeps every finished episode, and ``resume`` plays only the episodes the CSV lacks (refused when
+    the CSV belongs to another evaluation: task, agent, checkpoint, seed, split, sounds, env settings)."""
     from agents import make_agent
+    from sonicverse_core import errors
 
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
@@ -46,18 +52,112 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
         raise ConfigError(f"--first must be >= 0, got {first}")
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    if resume and not csv_path:
+        raise ConfigError("--resume continues the evaluation whose CSV --csv names: give it")
     kw = dict(env_kwargs or {})
     probe = make_agent(agent, np.random.default_rng(seed), task, checkpoint=checkpoint)  # fails early, names its env
+    meta = _identity(task, agent, split, sounds, seed, kw, getattr(probe, "checkpoint", None) or checkpoint)
     kw.update(getattr(probe, "env_kwargs", lambda: {})())
     if video:
         kw.setdefault("render_mode", "rgb_array")
     indices = list(range(first, first + episodes))
+    path = Path(csv_path) if csv_path else None
+    rows = _resumed(path, meta, indices) if resume else {}
+    todo = [i for i in indices if i not in rows]
+
+    def sink(i, row):
+        rows[i] = row
+        if path:
+            _write_rows(path, rows, meta)
+        if progress:
+            progress(i, row)
+
     args = (task, agent, split, sounds, seed, kw, maps, video, checkpoint)
-    if jobs > 1 and episodes > 1:
-        rows = _play_in_jobs(indices, min(jobs, episodes), args, progress)
-    else:
-        rows = _play(indices, *args, report=progress, bar=progress is not None)
-    return _summary(rows, task, agent, split, sounds, seed, first, csv_path)
+    try:
+        if jobs > 1 and len(todo) > 1:
+            _play_in_jobs(todo, min(jobs, len(todo)), args, sink, bar=progress is not None)
+        elif todo:
+            _play(todo, *args, report=sink, bar=progress is not None)
+    except (KeyboardInterrupt, errors.Interrupted) as exc:
+        n = len(rows)
+        kept = (f"{path} keeps its {n} finished episode{'s' if n > 1 else ''}: add --resume to play the rest"
+                if path and rows else "no episode had finished")
+        raise errors.Interrupted(f"{str(exc) or 'interrupted'}; {kept}") from None
+    if path:
+        _write_rows(path, rows, meta)
+    return _summary([rows[i] for i in indices], task, agent, split, sounds, seed, first, path)
+
+
+def _identity(task, agent, split, sounds, seed, kw, checkpoint) -> dict:
+    """What an evaluation's rows depend on, written beside its CSV: a resumed run must match it (a learned agent's
+    weights by their hash: the shipped default included)."""
+    import hashlib
+
+    ck = None
+    if checkpoint:
+        ck = {"path": str(checkpoint), "sha256": hashlib.sha256(Path(checkpoint).read_bytes()).hexdigest()}
+    return {"task": task, "agent": agent, "split": split, "sounds": sounds, "seed": int(seed),
+            "env": {k: kw[k] for k in sorted(kw)}, "checkpoint": ck}
+
+
+def _meta_path(path: Path) -> Path:
+    return path.with_name(path.name + ".json")
+
+
+def _write_rows(path: Path, rows: dict, meta: dict) -> None:
+    import io
+    import json
+
+    from sonicverse_core.storage import write_text_atomic
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(_meta_path(path), json.dumps(meta, indent=1, default=str) + "\n")
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CSV_FIELDS)
+    w.writeheader()
+    w.writerows(rows[i] for i in sorted(rows))
+    write_text_atomic(path, buf.getvalue())
+
+
+def _resumed(path: Path, meta: dict, indices: list[int]) -> dict:
+    """The rows an interrupted evaluation left in ``path``, by episode (none where there is no CSV yet)."""
+    import json
+
+    if not path.exists():
+        return {}
+    mp = _meta_path(path)
+    try:
+        old = json.loads(mp.read_text())
+    except (OSError, ValueError):
+        raise ConfigError(f"cannot resume {path}: {mp.name} (what it evaluated) is missing or unreadable") from None
+    if old != json.loads(json.dumps(meta, default=str)):
+        diff = sorted(k for k in set(old) | set(meta) if old.get(k) != json.loads(json.dumps(meta.get(k),
+                                                                                              default=str)))
+        raise ConfigError(f"cannot resume {path}: it holds another evaluation (its {', '.join(diff)} "
+                          f"{'differs' if len(diff) == 1 else 'differ'}); use another --csv or drop --resume")
+    rows = {}
+    try:
+        with path.open(newline="") as f:
+            for r in csv.DictReader(f):
+                row = {k: _number(v) for k, v in r.items()}
+                rows[int(row["episode"])] = row
+    except (OSError, ValueError, KeyError, csv.Error) as exc:
+        raise ConfigError(f"cannot resume {path}: not an evaluation CSV ({exc})") from None
+    outside = sorted(set(rows) - set(indices))
+    if outside:
+        raise ConfigError(f"cannot resume {path}: it holds episode {outside[0]}, outside the episodes asked for "
+                          f"({indices[0]} .. {indices[-1]}: --first, --episodes)")
+    return rows
+
+
+def _number(v: str):
+    """A CSV cell back to what was written: int, float (inf and nan too) or text."""
+    for f in (int, float):
+        try:
+            return f(v)
+        except ValueError:
+            pass
+    return v
 
 
 def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint, report=None,
@@ -124,12 +224,13 @@ def _job(queue, j: int, threads: int, indices, args) -> None:
     queue.put(("done", j))
 
 
-def _play_in_jobs(indices, jobs: int, args, progress) -> list[dict]:
-    """Play ``indices`` in ``jobs`` spawned processes (each its own env, GL context and agent); the rows in episode
-    order. A job that fails or dies stops the others, and its error is raised here."""
+def _play_in_jobs(indices, jobs: int, args, report, bar: bool = False) -> None:
+    """Play ``indices`` in ``jobs`` spawned processes (each its own env, GL context and agent), calling
+    ``report(i, row)`` here as each episode ends. A job that fails or dies stops the others, and its error is
+    raised here."""
     import multiprocessing as mp
 
-    from sonicverse_core.progress import progress as bar
+    from sonicverse_core.progress import progress
     from sonicverse_core.tasks import worker_threads
 
     ctx = mp.get_context("spawn")
@@ -138,13 +239,10 @@ def _play_in_jobs(indices, jobs: int, args, progress) -> list[dict]:
              for j in range(jobs)]
     for p in procs:
         p.start()
-    rows = {}
     try:
-        for i, row in bar(_arrivals(q, procs), total=len(indices), desc=f"{args[0]} {args[1]} ({jobs} jobs)",
-                          enabled=progress is not None):
-            rows[i] = row
-            if progress:
-                progress(i, row)
+        for i, row in progress(_arrivals(q, procs), total=len(indices), desc=f"{args[0]} {args[1]} ({jobs} jobs)",
+                               enabled=bar):
+            report(i, row)
     finally:
         for p in procs:
             if p.is_alive():
@@ -152,7 +250,6 @@ def _play_in_jobs(indices, jobs: int, args, progress) -> list[dict]:
         for p in procs:
             p.join(timeout=10)
         q.close()
-    return [rows[i] for i in sorted(rows)]
 
 
 def _arrivals(q, procs):
@@ -188,13 +285,6 @@ def _arrivals(q, procs):
 def _summary(rows, task, agent, split, sounds, seed, first, csv_path) -> dict:
     from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
 
-    if csv_path:
-        p = Path(csv_path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        with p.open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-            w.writeheader()
-            w.writerows(rows)
     out = {"task": task, "agent": agent, "episodes": len(rows), "first": first, "split": split, "sounds": sounds,
            "seed": seed}
     for key, col in (("sr", "success"), ("spl", "spl"), ("sna", "sna"), ("soft_spl", "soft_spl"),
