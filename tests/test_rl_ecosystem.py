@@ -70,6 +70,25 @@ def test_closing_one_env_leaves_the_other_working():
     c.close()
 
 
+def test_an_env_dropped_without_closing_leaves_the_others_working():
+    """The garbage collector taking an env nobody closed (a notebook's habit) frees its GL context only: pyrender's
+    own clean-up terminated the process-wide EGL display, and every other env's camera failed on its next frame."""
+    import gc
+
+    import gymnasium as gym
+
+    a = gym.make("Sonicverse/AudioGoal-v0", **SMALL)
+    b = gym.make("Sonicverse/AudioGoal-v0", **SMALL)
+    a.reset(seed=0)
+    b.reset(seed=1)
+    del a
+    gc.collect()
+    for _ in range(3):
+        obs, *_ = b.step(b.action_space.sample())
+    assert obs["depth"].max() > 0
+    b.close()
+
+
 def test_info_reports_is_success_for_the_ecosystem():
     import gymnasium as gym
 

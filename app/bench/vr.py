@@ -71,12 +71,14 @@ def _stock(scene, size, frames) -> dict:
     import pyrender
 
     from app.scene.visual import VisualScene
+    from sonicverse_core.sensors.camera import keep_display_on_delete, release_offscreen
 
     with _session(scene, size) as s:
         s.views.close()
         s.views = v = VisualScene(s.scene, *size, shading="lit", robots=s.cfg.robots)
-        v.renderer.delete()
+        release_offscreen(v.renderer)
         v.renderer = pyrender.OffscreenRenderer(*size)
+        keep_display_on_delete(v.renderer)  # stock, but its deletion must not end the process's EGL display
         r = _timed(s, frames)
         return {k: r[k] for k in ("fps", "frame_ms_p50", "frame_ms_p99")}
 
@@ -196,11 +198,12 @@ def _gl_renderer() -> str:
     try:
         from OpenGL import GL
 
-        import pyrender
+        from sonicverse_core.sensors.camera import offscreen_renderer, release_offscreen
 
-        r = pyrender.OffscreenRenderer(16, 16)
+        r = offscreen_renderer(16, 16)
+        r._platform.make_current()
         name = GL.glGetString(GL.GL_RENDERER).decode()
-        r.delete()
+        release_offscreen(r)
         return name
     except Exception as exc:  # noqa: BLE001
         return f"unknown ({exc})"

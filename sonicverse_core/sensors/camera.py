@@ -55,6 +55,7 @@ def offscreen_renderer(width: int, height: int, msaa: bool = True, colour_only: 
     import pyrender
 
     r = pyrender.OffscreenRenderer(width, height)
+    keep_display_on_delete(r)
     inner = r._renderer
     inner._ms = msaa
     if not msaa:
@@ -645,6 +646,31 @@ class RGBDCamera:
         if self.ids_renderer is not None:
             release_offscreen(self.ids_renderer)
             self.ids_renderer = None
+
+
+def keep_display_on_delete(renderer) -> None:
+    """pyrender's EGL platform terminates the EGL display when its context is deleted, and the display is shared by
+    every context of the process. That also happens when the garbage collector takes a renderer nobody closed (an
+    env dropped without ``close()``, as in a notebook): every other env's camera then failed on its next frame
+    (glBindFramebuffer: invalid operation). Here deleting a renderer's context destroys that context only."""
+    import types
+
+    platform = getattr(renderer, "_platform", None)
+    if platform is None or not hasattr(platform, "_egl_display"):  # not EGL
+        return
+
+    def delete_context(self):
+        from OpenGL.EGL import (EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglGetCurrentContext,
+                                eglMakeCurrent)
+
+        if self._egl_display is not None and self._egl_context is not None:
+            if eglGetCurrentContext() == self._egl_context:
+                eglMakeCurrent(self._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+            eglDestroyContext(self._egl_display, self._egl_context)
+            self._egl_context = None
+        self._egl_display = None
+
+    platform.delete_context = types.MethodType(delete_context, platform)
 
 
 def release_offscreen(renderer) -> None:
