@@ -472,7 +472,7 @@ def test_an_evaluations_episodes_depend_on_the_seed_and_index_alone(tmp_path):
 def test_a_stopped_evaluation_keeps_its_episodes_and_resumes(tmp_path):
     """The CSV is rewritten after every episode: SIGTERM in the middle of a run ends it with one line that says
     how many episodes the CSV keeps and how to go on; `--resume` (here with `--jobs 2`) plays the rest, and the CSV
-    is the uninterrupted run's, byte for byte. A CSV of another evaluation is refused."""
+    is the uninterrupted run's, byte for byte. A CSV of another evaluation, or a broken one, is refused."""
     from conftest import ROOT, run_cli
 
     base = ["eval", "--task", "AudioGoal", "--agent", "random", "--episodes", "6", "--seed", "5", "--max-steps",
@@ -495,6 +495,9 @@ def test_a_stopped_evaluation_keeps_its_episodes_and_resumes(tmp_path):
     assert part.read_bytes() == whole.read_bytes() and json.loads(r.stdout)["episodes"] == 6
     r = run_cli(*base[:-4], "--seed", "6", "--max-steps", "300", "--csv", str(part), "--resume")
     assert r.returncode == 2 and "its seed differs" in r.stderr and part.read_bytes() == whole.read_bytes()
+    part.write_text(whole.read_text() + "7,test/1,,\n")  # edited by hand: refused, one line
+    r = run_cli(*base, "--csv", str(part), "--resume")
+    assert r.returncode == 2 and "line 8 has fewer cells" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 def test_a_failing_evaluation_job_stops_the_run_with_its_own_error(tmp_path, cli, monkeypatch):
@@ -510,8 +513,11 @@ def test_a_failing_evaluation_job_stops_the_run_with_its_own_error(tmp_path, cli
             "--max-steps", "5", "--csv", str(out))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "finite" in r.stderr and not out.exists()
-    for bad in (("--first", "-1"), ("--jobs", "0")):
+    import os
+
+    cores = len(os.sched_getaffinity(0))
+    for bad in (("--first", "-1"), ("--jobs", "0"), ("--jobs", str(cores + 1))):
         r = cli("eval", "--task", "AudioGoal", "--agent", "random", *bad)
-        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     r = cli("task", "run", "orientation-training", "--first", "2")
     assert r.returncode == 2 and "--first is for robot tasks" in r.stderr

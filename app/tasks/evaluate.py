@@ -52,6 +52,9 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
         raise ConfigError(f"--first must be >= 0, got {first}")
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    cores = _cores()
+    if jobs > cores:  # each job holds an env, a GL context and a model: more than the cores only costs memory
+        raise ConfigError(f"--jobs {jobs} is more than this machine's {cores} cores: use at most {cores}")
     if resume and not csv_path:
         raise ConfigError("--resume continues the evaluation whose CSV --csv names: give it")
     kw = dict(env_kwargs or {})
@@ -86,6 +89,12 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     if path:
         _write_rows(path, rows, meta)
     return _summary([rows[i] for i in indices], task, agent, split, sounds, seed, first, path)
+
+
+def _cores() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _identity(task, agent, split, sounds, seed, kw, checkpoint) -> dict:
@@ -138,10 +147,18 @@ def _resumed(path: Path, meta: dict, indices: list[int]) -> dict:
     rows = {}
     try:
         with path.open(newline="") as f:
-            for r in csv.DictReader(f):
+            reader = csv.DictReader(f)
+            if tuple(reader.fieldnames or ()) != CSV_FIELDS:
+                raise ValueError("its header is not the evaluation's columns")
+            for r in reader:
+                if None in r or None in r.values():
+                    raise ValueError(f"line {reader.line_num} has {'more' if None in r else 'fewer'} cells than "
+                                     "the header")
                 row = {k: _number(v) for k, v in r.items()}
-                rows[int(row["episode"])] = row
-    except (OSError, ValueError, KeyError, csv.Error) as exc:
+                if not isinstance(row["episode"], int):
+                    raise ValueError(f"line {reader.line_num}: episode '{row['episode']}' is not a number")
+                rows[row["episode"]] = row
+    except (OSError, ValueError, csv.Error) as exc:
         raise ConfigError(f"cannot resume {path}: not an evaluation CSV ({exc})") from None
     outside = sorted(set(rows) - set(indices))
     if outside:
