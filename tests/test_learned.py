@@ -159,17 +159,17 @@ def test_the_shipped_checkpoint_loads_and_beats_random(audiogoal_random_test9):
 
 
 def test_the_shipped_semantic_audio_nav_checkpoint_loads_and_beats_random():
-    """The shipped AV-Nav for SemanticAudioNav on the first 4 test episodes of seed 0: it stops at the object in
-    some of them (0, 1 and 3 on the per-room sound, session 30; 7% of 200 in the README), random (auto-stop) in
-    none."""
+    """The shipped AV-Nav for SemanticAudioNav on the first 2 test episodes of seed 0: it stops at the object in
+    both (and in 3 of the first 4 on the per-room sound, session 30; 7% of 200 in the README), random (auto-stop)
+    in none."""
     from app.tasks.evaluate import run_eval
     from agents.learned import default_checkpoint
 
     model, meta = load(default_checkpoint("av-nav", "SemanticAudioNav"))
     assert meta["config"]["task"] == "SemanticAudioNav" and model.cfg.action_dim == 3
-    learned = run_eval("SemanticAudioNav", "av-nav", 4, split="test", seed=0)
-    rnd = run_eval("SemanticAudioNav", "random", 4, split="test", seed=0)
-    assert learned["sr"]["mean"] >= 1 / 4 > rnd["sr"]["mean"]
+    learned = run_eval("SemanticAudioNav", "av-nav", 2, split="test", seed=0)
+    rnd = run_eval("SemanticAudioNav", "random", 2, split="test", seed=0)
+    assert learned["sr"]["mean"] >= 1 / 2 > rnd["sr"]["mean"]
 
 
 def test_the_discrete_head_acts_with_its_primitives_and_the_expert_lies_within_0_13_of_one():

@@ -52,7 +52,9 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
         raise ConfigError(f"--first must be >= 0, got {first}")
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
-    cores = _cores()
+    from sonicverse_core.tasks import cores as machine_cores
+
+    cores = machine_cores()
     if jobs > cores:  # each job holds an env, a GL context and a model: more than the cores only costs memory
         raise ConfigError(f"--jobs {jobs} is more than this machine's {cores} cores: use at most {cores}")
     if resume and not csv_path:
@@ -67,11 +69,13 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     path = Path(csv_path) if csv_path else None
     rows = _resumed(path, meta, indices) if resume else {}
     todo = [i for i in indices if i not in rows]
+    written = []  # the identity goes beside the CSV with its first row
 
     def sink(i, row):
         rows[i] = row
         if path:
-            _write_rows(path, rows, meta)
+            _write_rows(path, rows, meta if not written else None)
+            written.append(i)
         if progress:
             progress(i, row)
 
@@ -86,15 +90,7 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
         kept = (f"{path} keeps its {n} finished episode{'s' if n > 1 else ''}: add --resume to play the rest"
                 if path and rows else "no episode had finished")
         raise errors.Interrupted(f"{str(exc) or 'interrupted'}; {kept}") from None
-    if path:
-        _write_rows(path, rows, meta)
     return _summary([rows[i] for i in indices], task, agent, split, sounds, seed, first, path)
-
-
-def _cores() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _identity(task, agent, split, sounds, seed, kw, checkpoint) -> dict:
@@ -113,14 +109,16 @@ def _meta_path(path: Path) -> Path:
     return path.with_name(path.name + ".json")
 
 
-def _write_rows(path: Path, rows: dict, meta: dict) -> None:
+def _write_rows(path: Path, rows: dict, meta: dict | None) -> None:
+    """The CSV, rows in episode order (atomically); with ``meta``, its identity beside it first."""
     import io
     import json
 
     from sonicverse_core.storage import write_text_atomic
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(_meta_path(path), json.dumps(meta, indent=1, default=str) + "\n")
+    if meta is not None:
+        write_text_atomic(_meta_path(path), json.dumps(meta, indent=1, default=str) + "\n")
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=CSV_FIELDS)
     w.writeheader()
@@ -177,16 +175,14 @@ def _number(v: str):
     return v
 
 
-def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint, report=None,
-          bar: bool = False) -> list[dict]:
-    """Play the episodes ``indices`` in one env; their CSV rows in that order. ``report(i, row)`` after each."""
+def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint, report, bar: bool = False) -> None:
+    """Play the episodes ``indices`` in one env, calling ``report(i, row)`` (the CSV row) after each."""
     from agents import make_agent
     from sonicverse_core.progress import progress
 
     env = make_env(task, split=split, sounds=sounds, **kw)
     if video:
         env.unwrapped.hear = True  # the video's sound track is what the robot heard, whatever the agent reads
-    rows = []
     try:
         for i in progress(indices, desc=f"{task} {agent}", enabled=bar):
             s = episode_seed(seed, i)
@@ -210,25 +206,21 @@ def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint
             row = {"episode": i, "episode_id": ep.episode_id, "scene": ep.scene, "category": ep.category,
                    "object": ep.object_name, "sound": ep.sound, "sound_seconds": round(ep.sound_seconds, 3),
                    "reward": round(total, 4), **{k: m[k] for k in CSV_FIELDS if k in m}}
-            rows.append(row)
             if maps:
                 _write_map(env, ep, np.array(traj), Path(maps) / f"episode_{i:04d}.png", m)
             if video:
                 _write_video(Path(video) / f"episode_{i:04d}", frames, sound, env.cfg.sample_rate)
-            if report:
-                report(i, row)
+            report(i, row)
     finally:
         env.close()
-    return rows
 
 
 def _job(queue, j: int, threads: int, indices, args) -> None:
     """One job of :func:`_play_in_jobs` (a spawned process): its rows go back one by one, then ("done", j), or
     ("error", j, error class name, message)."""
-    import os
+    from sonicverse_core.tasks import limit_threads
 
-    for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
-        os.environ[k] = str(threads)
+    limit_threads(threads)
     try:
         import torch
 

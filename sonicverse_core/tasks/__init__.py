@@ -57,18 +57,30 @@ class EnvFactory:
         import gymnasium as gym
 
         if self.threads:
-            for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
-                os.environ[k] = str(self.threads)
+            limit_threads(self.threads)
         register_envs()
         return gym.make(ENV_IDS[self.task], **self.kwargs)
 
 
-def worker_threads(num_envs: int) -> int:
-    """Threads per worker so that ``num_envs`` workers share this machine's cores (at least 1)."""
+def cores() -> int:
+    """The cores this process may run on."""
     import os
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, cores // max(num_envs, 1))
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def worker_threads(num_envs: int) -> int:
+    """Threads per worker so that ``num_envs`` workers share this machine's cores (at least 1)."""
+    return max(1, cores() // max(num_envs, 1))
+
+
+def limit_threads(n: int) -> None:
+    """A worker process's software rasteriser (Mesa llvmpipe) and math libraries use ``n`` threads: set before
+    they start (the first GL context, the first numba or BLAS call)."""
+    import os
+
+    for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[k] = str(n)
 
 
 def make_vector_env(task: str, num_envs: int, context: str = "forkserver", threads: int | None = -1, **kwargs):
