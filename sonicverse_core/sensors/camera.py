@@ -675,8 +675,8 @@ def keep_display_on_delete(renderer) -> None:
 
 def release_offscreen(renderer) -> None:
     """Free a pyrender OffscreenRenderer's GL objects and destroy its own EGL context, leaving the EGL display
-    initialised. pyrender's ``delete()`` also calls eglTerminate on the display, which is shared by every context
-    of the process: closing one env (or one view) broke every other one."""
+    initialised (:func:`keep_display_on_delete`: pyrender's ``delete()`` would terminate the display every context
+    of the process shares, and its ``gc.collect()`` is not needed here)."""
     platform = getattr(renderer, "_platform", None)
     if platform is None or not hasattr(platform, "_egl_display"):  # not EGL (or already released)
         if platform is not None:
@@ -684,12 +684,7 @@ def release_offscreen(renderer) -> None:
         return
     platform.make_current()
     renderer._renderer.delete()
-    from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
-
-    if platform._egl_display is not None and platform._egl_context is not None:
-        eglMakeCurrent(platform._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
-        eglDestroyContext(platform._egl_display, platform._egl_context)
-        platform._egl_context = None
-    platform._egl_display = None  # the platform's __del__ would terminate the shared display otherwise
+    keep_display_on_delete(renderer)  # a stock renderer too
+    platform.delete_context()
     renderer._renderer = None
     renderer._platform = None

@@ -52,8 +52,6 @@ class EnvFactory:
         self.task, self.threads, self.kwargs = spec.name, threads, kwargs
 
     def __call__(self):
-        import os
-
         import gymnasium as gym
 
         if self.threads:
