@@ -2,6 +2,7 @@
 `task` command."""
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -567,3 +568,34 @@ def test_voice_retrieval_scripted_agent_hears_fetches_and_delivers():
     assert term and m["sr"] == 1.0 and 0 < m["spl"] <= 1.0
     assert m["same_room"] == 1.0 and m["speaker_azimuth_error_deg"] < 45.0  # chance: 90
     env.close()
+
+
+def test_task_run_plays_in_jobs_and_resumes_as_eval_does(tmp_path, cli):
+    """`task run --jobs 2` gives the rows and metrics of one process; `--resume` plays only the episodes its CSV
+    lacks (a row kept from before stays as it is) and refuses the CSV of another run."""
+    import csv
+
+    from app.tasks.run import run_task
+    from sonicverse_core.errors import ConfigError
+
+    kw = {"max_steps": 30}
+    two = run_task("speaker-following", "scripted", 3, seed=2, out=tmp_path, env_kwargs=kw, jobs=2)
+    path = Path(two["csv"])
+    whole = list(csv.DictReader(open(path, newline="")))
+    assert [int(r["episode"]) for r in whole] == [0, 1, 2] and two["episodes"] == 3
+    rows = whole[:2]  # as if stopped after two episodes, the first edited: the resumed run keeps it as it is
+    rows[0] = {**rows[0], "reward": "12345"}
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    res = run_task("speaker-following", "scripted", 3, seed=2, out=tmp_path, env_kwargs=kw, resume=True)
+    got = list(csv.DictReader(open(path, newline="")))  # episode 2 played again in one process: the jobs' row
+    assert res["episodes"] == 3 and got[0]["reward"] == "12345" and got[1:] == whole[1:]
+    with pytest.raises(ConfigError, match="its env differs"):
+        run_task("speaker-following", "scripted", 3, seed=2, out=tmp_path, env_kwargs={"max_steps": 31},
+                 resume=True)
+    with pytest.raises(ConfigError, match="--resume is for robot tasks"):
+        run_task("orientation-training", resume=True)
+    r = cli("task", "run", "orientation-training", "--jobs", "2")
+    assert r.returncode == 2 and "--jobs is for robot tasks" in r.stderr and len(r.stderr.strip().splitlines()) == 1

@@ -105,7 +105,7 @@ def cmd_bench_train(a) -> int:
     from app.bench.train import bench_train
 
     print(json.dumps(bench_train(a.task, a.steps, tuple(a.workers), a.size, a.seed, tuple(a.agents),
-                                 tuple(a.devices), a.update_batches)))
+                                 tuple(a.devices), a.update_batches, a.update_sequences)))
     return 0
 
 
@@ -158,8 +158,9 @@ def cmd_task_run(a) -> int:
         from app.tasks.run import run_in_vr
         from sonicverse_core.errors import ConfigError
 
-        if a.first:
-            raise ConfigError("--first is for headless runs (the robot's episodes), not --backend " + a.backend)
+        for flag, v in (("--first", a.first), ("--jobs", a.jobs > 1), ("--resume", a.resume)):
+            if v:
+                raise ConfigError(f"{flag} is for headless runs (the robot's episodes), not --backend {a.backend}")
         res = run_in_vr(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, backend=a.backend, out=a.out,
                         trials=a.trials or 10, mode=a.mode if a.mode != "mixed" else "turn",
                         hrtf=a.hrtf == "on", reverb=a.reverb == "on", scene=a.scene)
@@ -180,7 +181,7 @@ def cmd_task_run(a) -> int:
                    "render": not a.no_render, "hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
     res = run_task(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, out=a.out, maps=a.maps,
                    env_kwargs=kw, trials=a.trials, participant=participant, task_kwargs=task_kw,
-                   progress=not a.json, checkpoint=a.checkpoint, first=a.first)
+                   progress=not a.json, checkpoint=a.checkpoint, first=a.first, jobs=a.jobs, resume=a.resume)
     if a.json:
         print(json.dumps(res))
     else:
@@ -217,6 +218,12 @@ def add_task_commands(sub, bench_sub) -> None:
     tr.add_argument("--episodes", type=A.count(1, 100_000), default=10, help="episodes (default: %(default)s)")
     tr.add_argument("--first", type=A.count(0, 10**9), default=0,
                     help="robot tasks: start at this episode (episode i depends on --seed and i alone; default: 0)")
+    tr.add_argument("--jobs", type=A.count(1, 256), default=1,
+                    help="robot tasks: play the episodes in this many processes, the cores shared between them; the "
+                    "same rows and metrics as one process (default: %(default)s)")
+    tr.add_argument("--resume", action="store_true",
+                    help="robot tasks: continue the run whose CSV is in --out (rewritten after every episode): play "
+                    "only the episodes it lacks; refused if it holds another run")
     tr.add_argument("--trials", type=A.count(1, 1_000_000), default=None,
                     help="trials per block (orientation training; default: --episodes)")
     tr.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")
@@ -377,6 +384,8 @@ def add_task_commands(sub, bench_sub) -> None:
     bt.add_argument("--size", type=A.count(40, 256), default=64, help="depth image side (default: %(default)s)")
     bt.add_argument("--update-batches", type=A.count(1, 10_000), default=4,
                     help="imitation batches to time per update measurement, after one warm-up (default: %(default)s)")
+    bt.add_argument("--update-sequences", type=A.count(1, 4096), default=16,
+                    help="sequences of 48 steps per update batch (default: %(default)s, the imitation recipe's)")
     bt.add_argument("--devices", nargs="+", default=["cpu"], choices=("cpu", "cuda"),
                     help="devices to time the models on, side by side in the same run (default: cpu)")
     bt.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")

@@ -44,19 +44,12 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     or killed run keeps every finished episode, and ``resume`` plays only the episodes the CSV lacks (refused when
     the CSV belongs to another evaluation: task, agent, checkpoint, seed, split, sounds, env settings)."""
     from agents import make_agent
-    from sonicverse_core import errors
 
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
     if first < 0:
         raise ConfigError(f"--first must be >= 0, got {first}")
-    if jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
-    from sonicverse_core.tasks import cores as machine_cores
-
-    cores = machine_cores()
-    if jobs > cores:  # each job holds an env, a GL context and a model: more than the cores only costs memory
-        raise ConfigError(f"--jobs {jobs} is more than this machine's {cores} cores: use at most {cores}")
+    check_jobs(jobs)
     if resume and not csv_path:
         raise ConfigError("--resume continues the evaluation whose CSV --csv names: give it")
     kw = dict(env_kwargs or {})
@@ -67,30 +60,57 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
         kw.setdefault("render_mode", "rgb_array")
     indices = list(range(first, first + episodes))
     path = Path(csv_path) if csv_path else None
-    rows = _resumed(path, meta, indices) if resume else {}
+    rows = run_episodes(indices, _play, (task, agent, split, sounds, seed, kw, maps, video, checkpoint), jobs=jobs,
+                        path=path, meta=meta, resume=resume, fields=CSV_FIELDS, progress=progress,
+                        desc=f"{task} {agent}")
+    return _summary(rows, task, agent, split, sounds, seed, first, path)
+
+
+def check_jobs(jobs: int) -> None:
+    """``--jobs``: at least 1, at most the machine's cores (each job holds an env, a GL context and a model: more
+    than the cores only costs memory)."""
+    from sonicverse_core.tasks import cores as machine_cores
+
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    cores = machine_cores()
+    if jobs > cores:
+        raise ConfigError(f"--jobs {jobs} is more than this machine's {cores} cores: use at most {cores}")
+
+
+def run_episodes(indices: list[int], play, args: tuple, *, jobs: int = 1, path: Path | None = None,
+                 meta: dict | None = None, resume: bool = False, fields: tuple | None = None, progress=None,
+                 desc: str = "") -> list[dict]:
+    """The rows of episodes ``indices``, played by ``play(indices, *args, report=, bar=)`` (a module-level function:
+    ``jobs`` > 1 runs it in that many spawned processes, interleaved) and kept in the CSV ``path`` (rewritten
+    atomically after every episode, ``meta`` beside it; ``fields`` its columns, None: the rows' keys). ``resume``
+    plays only the episodes the CSV lacks. ``progress(i, row)`` is called here as each episode ends. An interruption
+    raises :class:`errors.Interrupted`, saying what the CSV keeps."""
+    from sonicverse_core import errors
+
+    rows = _resumed(path, meta, indices, fields) if resume else {}
     todo = [i for i in indices if i not in rows]
     written = []  # the identity goes beside the CSV with its first row
 
     def sink(i, row):
         rows[i] = row
         if path:
-            _write_rows(path, rows, meta if not written else None)
+            _write_rows(path, rows, meta if not written else None, fields)
             written.append(i)
         if progress:
             progress(i, row)
 
-    args = (task, agent, split, sounds, seed, kw, maps, video, checkpoint)
     try:
         if jobs > 1 and len(todo) > 1:
-            _play_in_jobs(todo, min(jobs, len(todo)), args, sink, bar=progress is not None)
+            _play_in_jobs(todo, min(jobs, len(todo)), play, args, sink, desc, bar=progress is not None)
         elif todo:
-            _play(todo, *args, report=sink, bar=progress is not None)
+            play(todo, *args, report=sink, bar=progress is not None)
     except (KeyboardInterrupt, errors.Interrupted) as exc:
         n = len(rows)
         kept = (f"{path} keeps its {n} finished episode{'s' if n > 1 else ''}: add --resume to play the rest"
                 if path and rows else "no episode had finished")
         raise errors.Interrupted(f"{str(exc) or 'interrupted'}; {kept}") from None
-    return _summary([rows[i] for i in indices], task, agent, split, sounds, seed, first, path)
+    return [rows[i] for i in indices]
 
 
 def _identity(task, agent, split, sounds, seed, kw, checkpoint) -> dict:
@@ -109,8 +129,9 @@ def _meta_path(path: Path) -> Path:
     return path.with_name(path.name + ".json")
 
 
-def _write_rows(path: Path, rows: dict, meta: dict | None) -> None:
-    """The CSV, rows in episode order (atomically); with ``meta``, its identity beside it first."""
+def _write_rows(path: Path, rows: dict, meta: dict | None, fields: tuple | None = CSV_FIELDS) -> None:
+    """The CSV, rows in episode order (atomically; ``fields`` its columns, None: the rows' keys in order of first
+    appearance); with ``meta``, its identity beside it first."""
     import io
     import json
 
@@ -119,15 +140,18 @@ def _write_rows(path: Path, rows: dict, meta: dict | None) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     if meta is not None:
         write_text_atomic(_meta_path(path), json.dumps(meta, indent=1, default=str) + "\n")
+    if fields is None:
+        fields = list(dict.fromkeys(k for i in sorted(rows) for k in rows[i]))
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CSV_FIELDS)
+    w = csv.DictWriter(buf, fieldnames=fields)
     w.writeheader()
     w.writerows(rows[i] for i in sorted(rows))
     write_text_atomic(path, buf.getvalue())
 
 
-def _resumed(path: Path, meta: dict, indices: list[int]) -> dict:
-    """The rows an interrupted evaluation left in ``path``, by episode (none where there is no CSV yet)."""
+def _resumed(path: Path, meta: dict, indices: list[int], fields: tuple | None = CSV_FIELDS) -> dict:
+    """The rows an interrupted evaluation left in ``path``, by episode (none where there is no CSV yet); ``fields``:
+    its columns (None: any that start with the episode's index)."""
     import json
 
     if not path.exists():
@@ -146,7 +170,8 @@ def _resumed(path: Path, meta: dict, indices: list[int]) -> dict:
     try:
         with path.open(newline="") as f:
             reader = csv.DictReader(f)
-            if tuple(reader.fieldnames or ()) != CSV_FIELDS:
+            head = tuple(reader.fieldnames or ())
+            if (head != fields) if fields is not None else (not head or head[0] != "episode"):
                 raise ValueError("its header is not the evaluation's columns")
             for r in reader:
                 if None in r or None in r.values():
@@ -215,7 +240,7 @@ def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint
         env.close()
 
 
-def _job(queue, j: int, threads: int, indices, args) -> None:
+def _job(queue, j: int, threads: int, indices, play, args) -> None:
     """One job of :func:`_play_in_jobs` (a spawned process): its rows go back one by one, then ("done", j), or
     ("error", j, error class name, message)."""
     from sonicverse_core.tasks import limit_threads
@@ -225,7 +250,7 @@ def _job(queue, j: int, threads: int, indices, args) -> None:
         import torch
 
         torch.set_num_threads(threads)
-        _play(indices, *args, report=lambda i, row: queue.put(("row", i, row)))
+        play(indices, *args, report=lambda i, row: queue.put(("row", i, row)))
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it there
         queue.put(("error", j, type(exc).__name__, str(exc).strip().splitlines()[0] if str(exc).strip() else
                    type(exc).__name__))
@@ -233,8 +258,8 @@ def _job(queue, j: int, threads: int, indices, args) -> None:
     queue.put(("done", j))
 
 
-def _play_in_jobs(indices, jobs: int, args, report, bar: bool = False) -> None:
-    """Play ``indices`` in ``jobs`` spawned processes (each its own env, GL context and agent), calling
+def _play_in_jobs(indices, jobs: int, play, args, report, desc: str, bar: bool = False) -> None:
+    """Play ``indices`` with ``play`` in ``jobs`` spawned processes (each its own env, GL context and agent), calling
     ``report(i, row)`` here as each episode ends. A job that fails or dies stops the others, and its error is
     raised here."""
     import multiprocessing as mp
@@ -244,13 +269,12 @@ def _play_in_jobs(indices, jobs: int, args, report, bar: bool = False) -> None:
 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    procs = [ctx.Process(target=_job, args=(q, j, worker_threads(jobs), indices[j::jobs], args), daemon=True)
+    procs = [ctx.Process(target=_job, args=(q, j, worker_threads(jobs), indices[j::jobs], play, args), daemon=True)
              for j in range(jobs)]
     for p in procs:
         p.start()
     try:
-        for i, row in progress(_arrivals(q, procs), total=len(indices), desc=f"{args[0]} {args[1]} ({jobs} jobs)",
-                               enabled=bar):
+        for i, row in progress(_arrivals(q, procs), total=len(indices), desc=f"{desc} ({jobs} jobs)", enabled=bar):
             report(i, row)
     finally:
         for p in procs:
@@ -274,7 +298,7 @@ def _arrivals(q, procs):
         except queues.Empty:
             dead = [j for j, p in enumerate(procs) if j not in done and p.exitcode is not None]
             if dead and q.empty():
-                raise errors.SonicverseError(f"evaluation job {dead[0]} died (exit code {procs[dead[0]].exitcode})"
+                raise errors.SonicverseError(f"job {dead[0]} died (exit code {procs[dead[0]].exitcode})"
                                              " before its episodes were played")
             continue
         if msg[0] == "row":
@@ -288,7 +312,7 @@ def _arrivals(q, procs):
             cls = getattr(errors, name, None)
             if isinstance(cls, type) and issubclass(cls, errors.SonicverseError):
                 raise cls(text)
-            raise errors.SonicverseError(f"evaluation job {j} failed: {name}: {text}")
+            raise errors.SonicverseError(f"job {j} failed: {name}: {text}")
 
 
 def _summary(rows, task, agent, split, sounds, seed, first, csv_path) -> dict:

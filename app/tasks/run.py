@@ -37,41 +37,68 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str = "test", seed: int = 0,
              out: str | Path | None = None, maps: str | Path | None = None, env_kwargs: dict | None = None,
              trials: int | None = None, participant: dict | None = None, task_kwargs: dict | None = None,
-             progress: bool = False, checkpoint=None, first: int = 0) -> dict:
+             progress: bool = False, checkpoint=None, first: int = 0, jobs: int = 1, resume: bool = False) -> dict:
     """``checkpoint``: a learned agent's weights (default: the one shipped for the task). Robot tasks play episodes
-    ``first`` .. ``first + episodes - 1`` of the run with ``seed`` (episode i depends on the seed and i alone)."""
+    ``first`` .. ``first + episodes - 1`` of the run with ``seed`` (episode i depends on the seed and i alone), in
+    ``jobs`` processes (the rows one process gives), into a CSV under ``out`` rewritten after every episode, which
+    ``resume`` completes (as ``sonicverse eval`` does: :func:`app.tasks.evaluate.run_episodes`)."""
     spec = task_spec(task)
     agent = agent or spec.agents[0]
     if first < 0:
         raise ConfigError(f"--first must be >= 0, got {first}")
     if spec.kind == "trials":
-        if first:
-            raise ConfigError(f"--first is for robot tasks' episodes; {spec.cli} runs trials")
+        for flag, v in (("--first", first), ("--jobs", jobs > 1), ("--resume", resume)):
+            if v:
+                raise ConfigError(f"{flag} is for robot tasks' episodes; {spec.cli} runs trials")
         if agent not in spec.agents:
             raise ConfigError(f"unknown agent '{agent}' for {spec.cli}; use one of {', '.join(spec.agents)}")
         if checkpoint is not None:
             raise ConfigError(f"{spec.cli} has no learned agents: no --checkpoint")
         return _run_trials(spec, agent, trials or episodes, seed, out, participant or {}, task_kwargs or {},
                            progress)
-    return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress, checkpoint, first)
+    return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress, checkpoint, first,
+                         jobs, resume)
 
 
 def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: int, out, maps, kw: dict,
-                  progress: bool, checkpoint=None, first: int = 0) -> dict:
+                  progress: bool, checkpoint=None, first: int = 0, jobs: int = 1, resume: bool = False) -> dict:
     from agents import make_agent
-    from sonicverse_core.progress import progress as bar
-    from sonicverse_core.tasks import make_env
+    from app.tasks.evaluate import _identity, check_jobs, run_episodes
     from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
 
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
+    check_jobs(jobs)
+    if resume and not out:
+        raise ConfigError("--resume continues the run whose CSV is in --out: give it")
     probe = make_agent(agent, np.random.default_rng(seed), spec.name, checkpoint=checkpoint)  # fails early
+    meta = _identity(spec.name, agent, split, None, seed, kw, getattr(probe, "checkpoint", None) or checkpoint)
     kw = {**kw, **getattr(probe, "env_kwargs", lambda: {})()}  # the sensors a learned agent was trained on
-    env = make_env(spec.name, split=split, **kw)
-    rows = []
     csv_path = Path(out) / f"{spec.cli}_{agent.replace(':', '.')}_{split}_s{seed}.csv" if out else None
+    rows = run_episodes(list(range(first, first + episodes)), _play_embodied,
+                        (spec.name, agent, split, seed, kw, maps, checkpoint), jobs=jobs, path=csv_path, meta=meta,
+                        resume=resume, fields=None, progress=(lambda i, row: None) if progress else None,
+                        desc=f"{spec.cli} {agent}")
+    res = {"task": spec.cli, "agent": agent, "episodes": len(rows), "first": first, "split": split, "seed": seed}
+    for key in spec.metrics:
+        col = "success" if key == "sr" else key
+        res[key] = (rate_ci95 if key in spec.rates else mean_ci95)(r[col] for r in rows)
+    if csv_path:
+        res["csv"] = str(csv_path)
+    return res
+
+
+def _play_embodied(indices, task: str, agent: str, split: str, seed: int, kw: dict, maps, checkpoint, report,
+                   bar: bool = False) -> None:
+    """Play the episodes ``indices`` in one env, calling ``report(i, row)`` (the CSV row) after each."""
+    from agents import make_agent
+    from sonicverse_core.progress import progress
+    from sonicverse_core.tasks import make_env
+
+    spec = task_spec(task)
+    env = make_env(spec.name, split=split, **kw)
     try:
-        for i in bar(range(first, first + episodes), desc=f"{spec.cli} {agent}", enabled=progress):
+        for i in progress(indices, desc=f"{spec.cli} {agent}", enabled=bar):
             s = episode_seed(seed, i)
             obs, info = env.reset(seed=s)
             ag = make_agent(agent, np.random.default_rng(s), spec.name, checkpoint=checkpoint)
@@ -87,22 +114,13 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
                 if person is not None:
                     person.append(env.task.person.pos.copy())
             m = info["metrics"]
-            rows.append({"episode": i, "episode_id": env.episode.episode_id, "scene": env.episode.scene,
-                         "reward": round(total, 4), **m})
-            if csv_path:  # rewritten whole (atomically) after every episode: Ctrl-C or a kill loses one at most
-                _write_csv(csv_path, rows)
             if maps:
                 _write_map(env, np.array(robot), None if person is None else np.array(person),
                            Path(maps) / f"episode_{i:04d}.png", spec, m)
+            report(i, {"episode": i, "episode_id": env.episode.episode_id, "scene": env.episode.scene,
+                       "reward": round(total, 4), **m})
     finally:
         env.close()
-    res = {"task": spec.cli, "agent": agent, "episodes": len(rows), "first": first, "split": split, "seed": seed}
-    for key in spec.metrics:
-        col = "success" if key == "sr" else key
-        res[key] = (rate_ci95 if key in spec.rates else mean_ci95)(r[col] for r in rows)
-    if csv_path:
-        res["csv"] = str(csv_path)
-    return res
 
 
 def _write_map(env, robot, person, out: Path, spec: TaskSpec, m: dict) -> None:
