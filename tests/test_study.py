@@ -12,6 +12,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from app.study.design import assign_row, session_plan, williams
@@ -44,6 +45,7 @@ task = "speaker-following"
 trials = 3
 agent = "scripted"
 condition = "a"
+time_limit_s = 10
 """
 
 
@@ -105,6 +107,9 @@ def test_nothing_is_overwritten(tmp_path):
     start_session(store, study, "P1")
     with pytest.raises(StudyError, match="study resume"):  # an unfinished session: refuse, point to resume
         start_session(store, study, "P1")
+    first = store.plan("P1", 1)[0]
+    store.commit_trial("P1", 1, first, "done", {"x": 0}, {}, {}, "t", 0.1)
+    before = store.csv_path("P1", 1).read_bytes()
     store.set_status("P1", 1, "finished")
     assert start_session(store, study, "P1") == 2  # after a finished one: the next number
     with pytest.raises(StudyError, match="exists"):
@@ -116,6 +121,7 @@ def test_nothing_is_overwritten(tmp_path):
     with pytest.raises(sqlite3.IntegrityError):  # a slot is committed once
         store.commit_trial("P1", 2, slot, "done", {"x": 2}, {}, {}, "t", 0.1)
     assert [t["metrics"] for t in store.trials("P1", 2)] == [{"x": 1}]
+    assert store.csv_path("P1", 1).read_bytes() == before and store.csv_path("P1", 2) != store.csv_path("P1", 1)
     # identifying details go to a separate file, never into the database or the session folders
     store.add_participant("P9", {"name": "Ada"})
     assert "Ada" in (tmp_path / "private" / "identities.csv").read_text()
@@ -179,10 +185,6 @@ def test_default_study_runs_headless_with_report(tmp_path):
     assert set(plots) == {"learning_curves", "following_distance"}
     for p in plots.values():
         assert Path(p).stat().st_size > 10_000
-    # the next run is session 2, session 1 untouched
-    before = (data / "S1" / "session-1" / "trials.csv").read_bytes()
-    r2 = _run("run", "default", "--participant", "S1", "--data", str(data), "--json")
-    assert json.loads(r2.stdout)["session"] == 2 and (data / "S1" / "session-1" / "trials.csv").read_bytes() == before
 
 
 def _csv_slots(path: Path, store, pid, n) -> list:
@@ -273,6 +275,11 @@ def test_killed_in_a_trial_loses_at_most_that_trial_and_resumes(tmp_path, sig):
     assert store.order("K1", 1) == order and store.plan("K1", 1) == plan
     assert _csv_slots(csv_path, store, "K1", 1) == [s.slot for s in plan]
     assert store.session("K1", 1)["status"] == "finished"
+    follows = [t for t in store.trials("K1", 1) if t["task"] == "speaker-following"]
+    assert len(follows) == 3
+    for t in follows:  # the block's time_limit_s holds headless too: 10 s of 0.1 s steps
+        raw = np.load(data / t["raw"]["trajectory"])
+        assert len(raw["t"]) <= 101 and raw["t"][-1] <= 10.0 + 1e-9
     resumes = [e for e in store.events("K1", 1) if e["kind"] == "resume"]
     assert len(resumes) == 1 and json.loads(resumes[0]["detail"])["first_slot"] == first_open
 

@@ -19,6 +19,7 @@ name = "follow"
 task = "speaker-following"
 trials = 2
 agent = "scripted"
+time_limit_s = 10
 [[blocks]]
 name = "turns"
 task = "orientation-training"

@@ -26,7 +26,8 @@ simulated = { front_back = 0.35 }  # what the condition does to the simulated pa
 name = "orientation"
 task = "orientation-training"      # a task of the registry (`sonicverse task list`)
 trials = 4
-time_limit_s = 30                  # a person's trial in the VR app (default 60 s; robot tasks: the task's limit)
+time_limit_s = 30                  # a trial's limit: a person's in the VR app (default 60 s), a robot task's
+                                   # episode headless too (default: the task's limit)
 practice = 1                       # practice trials before the block (recorded, flagged practice)
 mode = "turn"                      # orientation training: turn | walk
 per_condition = true               # one block per condition, in the participant's order
@@ -79,7 +80,8 @@ class Block:
     mode: str = "turn"
     difficulty: str = "duration"
     staircase: str = "1up2down"
-    time_limit_s: float | None = None  # a person's trial in the VR app (default: 60 s, robot tasks their own limit)
+    time_limit_s: float | None = None  # a trial's limit, VR app and headless robot episodes (default: 60 s in VR, robot
+    #                                   tasks their own limit)
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ ears, trajectory); its quality figures are the session's missed frames, xruns an
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -94,11 +95,14 @@ class TrialRunner:
         from agents import make_agent
         from sonicverse_core.storage import atomic_write
         from sonicverse_core.tasks import make_env
+        from sonicverse_core.tasks.base import TaskConfig
 
-        key = (spec.name, cond.hrtf, cond.reverb, cond.home)
+        key = (spec.name, cond.hrtf, cond.reverb, cond.home, blk.time_limit_s)
         env = self._envs.get(key)
         if env is None:
             kw = {"scenes": (cond.home,)} if cond.home else {}
+            if blk.time_limit_s:  # the block's limit, as in the VR app (steps of the env's default 0.1 s)
+                kw["max_steps"] = max(1, math.ceil(blk.time_limit_s / TaskConfig.step_seconds - 1e-9))
             env = self._envs[key] = make_env(spec.name, split="test", hrtf=cond.hrtf, reverb=cond.reverb, **kw)
         agent = cond.agent or blk.agent or spec.agents[0]
         obs, info = env.reset(seed=slot.seed)
