@@ -306,9 +306,10 @@ def test_bench_train_reports_rollout_update_and_scaling(cli):
     from sonicverse_core.tasks import worker_threads
 
     r = cli("bench", "train", "--steps", "20", "--workers", "2", "--agents", "av-nav", "savi", "multitask",
-            "--update-batches", "1", check_rc=0)
+            "--update-batches", "1", "--update-sequences", "2", check_rc=0)
     b = json.loads(r.stdout)
-    assert b["update_batches"] == 1
+    assert b["update_batches"] == 1 and b["update_sequences"] == 2
+    assert b["audio_depth"]["update"]["batch_frames"] == 2 * 48
     m = b["models"]
     assert set(m) == {"av-nav", "savi", "multitask"} and all(v["update_frames_per_s"] > 0 for v in m.values())
     assert m["multitask"]["rollout"]["parameters"] > m["savi"]["rollout"]["parameters"]  # the U-Net
@@ -428,9 +429,8 @@ def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_
     learned = run_task("speaker-following", "av-nav", 2, seed=0, first=1)["time_in_band"]["mean"]
     rnd = run_task("speaker-following", "random", 2, seed=0, first=1)["time_in_band"]["mean"]
     assert learned > rnd + 0.1, (learned, rnd)
-    r = cli("task", "run", "speaker-following", "--agent", "oracle", "--checkpoint",
-            str(default_checkpoint("av-nav", "SpeakerFollowing")), "--episodes", "1")
-    assert r.returncode == 2 and "--checkpoint is for learned agents" in r.stderr
+    with pytest.raises(ConfigError, match="--checkpoint is for learned agents"):
+        run_task("speaker-following", "oracle", 1, checkpoint=default_checkpoint("av-nav", "SpeakerFollowing"))
     task = FollowMe(agent="av-nav", seed=0)
     seen = []
     cfg = SessionConfig(scene="builtin:apartment?seed=6000", views=True, audio="offline", robots=1, write_frames=0)

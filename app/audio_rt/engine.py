@@ -154,6 +154,9 @@ class AudioEngine:
         return self.start()
 
     def _kill(self) -> None:
+        for conn in (self._conn, self._rconn):  # first: a worker still waiting for orders reads the end and exits
+            if conn is not None:
+                conn.close()
         for proc in (self._proc, self._rproc):  # a worker that does not exit within 3 s is killed
             if proc is not None:
                 try:
@@ -163,9 +166,6 @@ class AudioEngine:
                     proc.wait(timeout=3.0)
         if self._thread is not None:
             self._thread.join(timeout=3.0)
-        for conn in (self._conn, self._rconn):
-            if conn is not None:
-                conn.close()
         self._proc = self._rproc = self._thread = self._conn = self._rconn = None
 
     def _wait(self, timeout: float, conn=None, proc=None):

@@ -198,8 +198,10 @@ def rollout_vector(task: str, workers: int, steps: int, size: int, seed: int, th
 
 
 def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size: int = 64, seed: int = 0,
-                agents=("av-nav",), devices=("cpu",), update_batches: int = 4) -> dict:
-    """``update_batches``: imitation batches timed per update measurement (after one warm-up batch)."""
+                agents=("av-nav",), devices=("cpu",), update_batches: int = 4,
+                update_sequences: int = 16) -> dict:
+    """``update_batches``: imitation batches timed per update measurement (after one warm-up batch) of
+    ``update_sequences`` sequences of 48 steps (the imitation recipe's batch: 16)."""
     import os
 
     import torch
@@ -209,11 +211,12 @@ def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size:
     for dv in devices:
         resolve_device(dv)  # cuda without a CUDA device: a ConfigError before anything runs
     out = {"bench": "train", "task": task, "size": size, "steps": steps, "update_batches": update_batches,
+           "update_sequences": update_sequences,
            "torch_threads": torch.get_num_threads(),
            "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}
     for name, sensors in (("audio_depth", AUDIO_DEPTH), ("audio_only", AUDIO_ONLY)):
         out[name] = {"rollout": rollout_one(task, sensors, steps, size, seed),
-                     "update": update(task, sensors, size, reps=update_batches)}
+                     "update": update(task, sensors, size, reps=update_batches, batch=update_sequences)}
     # what acting with torch's default threads costs (its OpenMP workers spin between steps beside the renderer)
     r = rollout_one(task, AUDIO_DEPTH, steps, size, seed, threads=None)
     out["audio_depth"]["rollout_torch_default_threads"] = {k: r[k] for k in ("frames_per_s", "env_ms", "model_ms")}
@@ -224,7 +227,7 @@ def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size:
             r = out["audio_depth"]["rollout"] if agent == "av-nav" else rollout_one(task, AUDIO_DEPTH, steps, size,
                                                                                     seed, agent=agent)
             u = (out["audio_depth"]["update"] if agent == "av-nav"
-                 else update(task, AUDIO_DEPTH, size, agent=agent, reps=update_batches))
+                 else update(task, AUDIO_DEPTH, size, agent=agent, reps=update_batches, batch=update_sequences))
             models[agent] = {"rollout": {k: r[k] for k in keys}, "update_frames_per_s": u["frames_per_s"]}
         out["models"] = models
     if set(devices) - {"cpu"}:  # every model on every device, side by side (audio + depth)
@@ -234,7 +237,8 @@ def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size:
             per[dv] = {}
             for agent in agents:
                 r = rollout_one(task, AUDIO_DEPTH, steps, size, seed, agent=agent, device=dv)
-                u = update(task, AUDIO_DEPTH, size, agent=agent, device=dv, reps=update_batches)
+                u = update(task, AUDIO_DEPTH, size, agent=agent, device=dv, reps=update_batches,
+                           batch=update_sequences)
                 per[dv][agent] = {"rollout": {k: r[k] for k in keys}, "update_frames_per_s": u["frames_per_s"],
                                   "update_ms_per_batch": u["ms_per_batch"]}
         out["devices"] = per
