@@ -476,7 +476,7 @@ def test_a_stopped_evaluation_keeps_its_episodes_and_resumes(tmp_path):
     from conftest import ROOT, run_cli
 
     base = ["eval", "--task", "AudioGoal", "--agent", "random", "--episodes", "6", "--seed", "5", "--max-steps",
-            "300"]
+            "100"]
     whole, part = tmp_path / "whole.csv", tmp_path / "part.csv"
     run_cli(*base, "--csv", str(whole), "--json", check_rc=0)
     exe = [sys.executable, "-m", "app.cli", *base, "--csv", str(part)]
@@ -493,7 +493,7 @@ def test_a_stopped_evaluation_keeps_its_episodes_and_resumes(tmp_path):
     assert 1 <= kept < 6 and f"keeps its {kept} finished episode" in last and "--resume" in last
     r = run_cli(*base, "--csv", str(part), "--resume", "--jobs", "2", "--json", check_rc=0)
     assert part.read_bytes() == whole.read_bytes() and json.loads(r.stdout)["episodes"] == 6
-    r = run_cli(*base[:-4], "--seed", "6", "--max-steps", "300", "--csv", str(part), "--resume")
+    r = run_cli(*base[:-4], "--seed", "6", "--max-steps", "100", "--csv", str(part), "--resume")
     assert r.returncode == 2 and "its seed differs" in r.stderr and part.read_bytes() == whole.read_bytes()
     part.write_text(whole.read_text() + "7,test/1,,\n")  # edited by hand: refused, one line
     r = run_cli(*base, "--csv", str(part), "--resume")
