@@ -54,7 +54,7 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
         raise ConfigError("--resume continues the evaluation whose CSV --csv names: give it")
     kw = dict(env_kwargs or {})
     probe = make_agent(agent, np.random.default_rng(seed), task, checkpoint=checkpoint)  # fails early, names its env
-    meta = _identity(task, agent, split, sounds, seed, kw, getattr(probe, "checkpoint", None) or checkpoint)
+    meta = run_identity(task, agent, split, sounds, seed, kw, getattr(probe, "checkpoint", None) or checkpoint)
     kw.update(getattr(probe, "env_kwargs", lambda: {})())
     if video:
         kw.setdefault("render_mode", "rgb_array")
@@ -113,7 +113,7 @@ def run_episodes(indices: list[int], play, args: tuple, *, jobs: int = 1, path: 
     return [rows[i] for i in indices]
 
 
-def _identity(task, agent, split, sounds, seed, kw, checkpoint) -> dict:
+def run_identity(task, agent, split, sounds, seed, kw, checkpoint) -> dict:
     """What an evaluation's rows depend on, written beside its CSV: a resumed run must match it (a learned agent's
     weights by their hash: the shipped default included)."""
     import hashlib
