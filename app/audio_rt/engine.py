@@ -67,25 +67,32 @@ class AudioEngine:
         self._block = SharedBlock(self.layout.size, private=thread)
         self.sh = Shared(self.layout, self._block.buf, self.n_listeners)
         self._errors_seen = 0
-        rmsg = None
-        if thread:
-            parent, child = mp.Pipe()
-            from app.audio_rt.worker import run
-
-            self._thread = threading.Thread(target=run, name="sonicverse-audio", daemon=True,
-                                            args=(child, cfg, self.scene, None, self._block.buf))
-            self._thread.start()
-        else:
-            # the robots render in a process of their own, the callback's renders the user's ears only (worker.py)
-            role, parent = ("user" if self.scene.robots else "all"), None
-            if role == "user":  # ready (warmed up) before the stream starts: the robots render from its first block
-                self._rproc, self._rconn = self._spawn((cfg, self.scene, self._block.path, "robots"))
-                rmsg = self._wait(cfg.start_timeout, self._rconn, self._rproc)
-            if role == "all" or (rmsg is not None and rmsg[0] == "ready"):
-                self._proc, parent = self._spawn((cfg, self.scene, self._block.path, role))
-        self._conn = parent
+        rmsg = msg = None
         try:
-            msg = self._wait(cfg.start_timeout) if parent is not None else None
+            if thread:
+                parent, child = mp.Pipe()
+                from app.audio_rt.worker import run
+
+                self._thread = threading.Thread(target=run, name="sonicverse-audio", daemon=True,
+                                                args=(child, cfg, self.scene, None, self._block.buf))
+                self._thread.start()
+                self._conn = parent
+                msg = self._wait(cfg.start_timeout)
+            else:
+                # the robots render in a process of their own, the callback's renders the user's ears only
+                # (worker.py); with robots, the stream's worker first checks the devices (a wrong one fails at once,
+                # not after the robots' warm-up), then waits while the robots' worker warms up: ready before the
+                # stream starts, the robots render from its first block (and two workers never compile at once)
+                role = "user" if self.scene.robots else "all"
+                self._proc, self._conn = self._spawn((cfg, self.scene, self._block.path, role))
+                msg = self._wait(cfg.start_timeout)
+                if role == "user" and msg is not None and msg[0] == "checked":
+                    self._rproc, self._rconn = self._spawn((cfg, self.scene, self._block.path, "robots"))
+                    rmsg = self._wait(cfg.start_timeout, self._rconn, self._rproc)
+                    msg = None
+                    if rmsg is not None and rmsg[0] == "ready":
+                        self._conn.send(("go",))
+                        msg = self._wait(cfg.start_timeout)
         finally:
             self._block.unlink()  # all sides have it mapped; nothing is left in /dev/shm whatever happens
         if self._rconn is not None and (rmsg is None or rmsg[0] != "ready"):

@@ -43,6 +43,10 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str
         name_jack_client(client)
 
         out_dev, in_dev = check(cfg)
+        if role == "user":  # the devices are there: the engine starts the robots' worker, then says go
+            conn.send(("checked",))
+            if not _go(conn):
+                return
         t0 = time.perf_counter()
         core = AudioCore(cfg, scene_setup, sh, pose_layout, role=role)
         core.warm_up()
@@ -177,6 +181,14 @@ def run_robots(conn, cfg, scene_setup, shm_path: str) -> None:
             sh.tele[C.ERRORS] += 1
         done += B
         sh.tele[C.ROBOT_BLOCKS] += 1
+
+
+def _go(conn) -> bool:
+    """Wait for the engine's go (False: it stopped instead, or went away)."""
+    try:
+        return conn.recv()[0] == "go"
+    except (EOFError, OSError):
+        return False
 
 
 def _stop_asked(conn, timeout: float) -> bool:
