@@ -595,6 +595,11 @@ def test_task_run_plays_in_jobs_and_resumes_as_eval_does(tmp_path, cli):
     with pytest.raises(ConfigError, match="its env differs"):
         run_task("speaker-following", "scripted", 3, seed=2, out=tmp_path, env_kwargs={"max_steps": 31},
                  resume=True)
+    from app.tasks.evaluate import csv_name
+
+    assert Path(two["csv"]).name == csv_name("speaker-following", "scripted", "test", 2) == \
+        "speaker-following_scripted_test_s2.csv"
+    assert csv_name("AudioGoal", "m:f", "test", 0, 100, "heard") == "AudioGoal_m.f_test_heard_s0_from100.csv"
     with pytest.raises(ConfigError, match="--resume is for robot tasks"):
         run_task("orientation-training", resume=True)
     r = cli("task", "run", "orientation-training", "--jobs", "2")

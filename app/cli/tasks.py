@@ -3,14 +3,15 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 from app.cli import args as A
 
 
 def cmd_eval(a) -> int:
-    from app.tasks.evaluate import run_eval
+    from app.tasks.evaluate import csv_name, run_eval
 
-    csv_path = a.csv or f"out/eval/{a.task}_{a.agent.replace(':', '.')}_{a.split}_{a.sounds}_s{a.seed}.csv"
+    csv_path = a.csv or Path("out/eval") / csv_name(a.task, a.agent, a.split, a.seed, a.first, a.sounds)
     kw = {}
     if a.homes is not None:
         kw["homes"] = a.homes
@@ -305,7 +306,8 @@ def add_task_commands(sub, bench_sub) -> None:
     e.add_argument("--seed", type=A.seed, default=0, help="episode seed (default: %(default)s)")
     e.add_argument("--homes", type=A.count(1, 1000), default=None, help="use the first N homes of the split")
     e.add_argument("--max-steps", type=A.count(1, 100_000), default=None, help="episode length limit (default: 500)")
-    e.add_argument("--csv", default=None, type=A.out_file(".csv"), help="per-episode CSV (default: out/eval/TASK_AGENT_SPLIT_SOUNDS_sSEED.csv)")
+    e.add_argument("--csv", default=None, type=A.out_file(".csv"), help="per-episode CSV (default: out/eval/TASK_AGENT_SPLIT_SOUNDS_sSEED.csv, "
+                   "with _fromK for --first K: the parts of a long run do not overwrite each other)")
     e.add_argument("--maps", default=None, metavar="DIR", type=A.out_dir, help="write a top-down trajectory map per episode")
     e.add_argument("--video", default=None, metavar="DIR", type=A.out_dir, help="write frames (PNG) + audio (WAV) per episode")
     e.add_argument("--resume", action="store_true",

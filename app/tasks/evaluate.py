@@ -66,6 +66,13 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     return _summary(rows, task, agent, split, sounds, seed, first, path)
 
 
+def csv_name(task: str, agent: str, split: str, seed: int, first: int = 0, sounds: str | None = None) -> str:
+    """The default CSV's name of a run: a part that starts at episode ``first`` > 0 has its own (``_fromK``), so
+    the parts of a long run written to one folder do not overwrite each other."""
+    mid = f"_{sounds}" if sounds else ""
+    return f"{task}_{agent.replace(':', '.')}_{split}{mid}_s{seed}{f'_from{first}' if first else ''}.csv"
+
+
 def check_jobs(jobs: int) -> None:
     """``--jobs``: at least 1, at most the machine's cores (each job holds an env, a GL context and a model: more
     than the cores only costs memory)."""

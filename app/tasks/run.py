@@ -63,7 +63,7 @@ def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str
 def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: int, out, maps, kw: dict,
                   progress: bool, checkpoint=None, first: int = 0, jobs: int = 1, resume: bool = False) -> dict:
     from agents import make_agent
-    from app.tasks.evaluate import check_jobs, run_episodes, run_identity
+    from app.tasks.evaluate import check_jobs, csv_name, run_episodes, run_identity
     from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
 
     if episodes < 1:
@@ -74,7 +74,7 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
     probe = make_agent(agent, np.random.default_rng(seed), spec.name, checkpoint=checkpoint)  # fails early
     meta = run_identity(spec.name, agent, split, None, seed, kw, getattr(probe, "checkpoint", None) or checkpoint)
     kw = {**kw, **getattr(probe, "env_kwargs", lambda: {})()}  # the sensors a learned agent was trained on
-    csv_path = Path(out) / f"{spec.cli}_{agent.replace(':', '.')}_{split}_s{seed}.csv" if out else None
+    csv_path = Path(out) / csv_name(spec.cli, agent, split, seed, first) if out else None
     rows = run_episodes(list(range(first, first + episodes)), _play_embodied,
                         (spec.name, agent, split, seed, kw, maps, checkpoint), jobs=jobs, path=csv_path, meta=meta,
                         resume=resume, fields=None, progress=(lambda i, row: None) if progress else None,
