@@ -413,3 +413,31 @@ def test_cli_devices_and_loopback_test(jack, cli):
     assert res["round_trip_ms"] <= 2 * res["block_ms"] + 1.0 and res["callbacks"] > 300
     r = cli("audio", "loopback-test", "--device", "nope", check_rc=2)
     assert r.stderr.count("\n") == 1 and "no output device 'nope'" in r.stderr
+
+
+def test_a_jack_server_does_not_outlive_a_killed_user(tmp_path):
+    """A test run or a benchmark killed with SIGKILL cannot stop its JACK server: the server gets SIGTERM with it
+    (setpriv --pdeathsig), so no real-time server is left running."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import ROOT
+
+    code = ("import os, sys, time\nfrom app.audio_rt.jack import JackServer\n"
+            "s = JackServer(f'sv-orphan-{os.getpid()}')\nprint(s.proc.pid, flush=True)\ntime.sleep(600)\n")
+    user = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    pid = int(user.stdout.readline())
+    os.kill(pid, 0)  # running
+    user.send_signal(signal.SIGKILL)
+    user.wait(timeout=30)
+    deadline = time.monotonic() + 30
+    while True:  # polled: it is a child of init now, reaped there
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline, f"jackd {pid} outlived the process that started it"
+        time.sleep(0.05)

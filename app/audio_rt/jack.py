@@ -1,8 +1,9 @@
 """A JACK server with the dummy backend: a real clocked audio device without a sound card (tests, benchmarks).
 
 Started with ``jackd -n NAME -d dummy`` and stopped by its PID with SIGTERM (a clean shutdown that leaves no stale
-entry in JACK's server registry in /dev/shm), SIGKILL only if that hangs. Point PortAudio at it with
-``JACK_DEFAULT_SERVER=NAME``.
+entry in JACK's server registry in /dev/shm), SIGKILL only if that hangs. It gets SIGTERM too when the thread that
+started it goes away without stopping it (a test run or a benchmark killed: util-linux's ``setpriv --pdeathsig``),
+so no real-time server outlives its user. Point PortAudio at it with ``JACK_DEFAULT_SERVER=NAME``.
 """
 from __future__ import annotations
 
@@ -19,8 +20,10 @@ class JackServer:
         exe = shutil.which("jackd")
         if exe is None:
             raise DependencyError("jackd not found: install the Debian package jackd2 (scripts/install-system.sh)")
-        self.cmd = [exe, "-n", name, "-d", "dummy", "-r", str(rate), "-p", str(period), "-P", str(playback),
-                    "-C", str(capture)]
+        guard = shutil.which("setpriv")  # util-linux (essential on Debian)
+        self.cmd = ([guard, "--pdeathsig", "TERM"] if guard else []) + [
+            exe, "-n", name, "-d", "dummy", "-r", str(rate), "-p", str(period), "-P", str(playback), "-C",
+            str(capture)]
         self.proc = None
         self.start()
 
