@@ -202,18 +202,17 @@ def bench_train(task: str = "AudioGoal", steps: int = 300, workers=(1, 2), size:
                 update_sequences: int = 16) -> dict:
     """``update_batches``: imitation batches timed per update measurement (after one warm-up batch) of
     ``update_sequences`` sequences of 48 steps (the imitation recipe's batch: 16)."""
-    import os
-
     import torch
 
     from agents.models import resolve_device
+    from sonicverse_core.tasks import cores
 
     for dv in devices:
         resolve_device(dv)  # cuda without a CUDA device: a ConfigError before anything runs
     out = {"bench": "train", "task": task, "size": size, "steps": steps, "update_batches": update_batches,
            "update_sequences": update_sequences,
            "torch_threads": torch.get_num_threads(),
-           "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}
+           "cores": cores()}
     for name, sensors in (("audio_depth", AUDIO_DEPTH), ("audio_only", AUDIO_ONLY)):
         out[name] = {"rollout": rollout_one(task, sensors, steps, size, seed),
                      "update": update(task, sensors, size, reps=update_batches, batch=update_sequences)}
