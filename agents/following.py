@@ -184,3 +184,81 @@ class MapFollower(MapDriver):
         _, length = self.ears.arrivals(p)
         i = int(np.argmin(np.sum((self.ears.xy - q) ** 2, axis=1)))
         return float(length[i])
+
+
+class EgoMap(MapFollower):
+    """What a learned follower reads of the map (``--map`` on ``sonicverse train``; ``AVNavConfig.map_shape``): the
+    scripted follower's perception, run on the robot's own sensors and its semantic map as :class:`MapFollower`
+    runs it, drawn as an egocentric image of ``SIZE`` x ``SIZE`` pixels of ``RES`` m, the robot at the centre facing
+    the top (its left to the left), uint8 channels:
+
+    0. the floor plan's navigable floor;
+    1. the belief over where the person stands (audio and vision), the likeliest place at 255;
+    2. the person the camera saw in the last 3 s, fading with age;
+    3. the route the scripted follower would drive now (empty when it would turn or stand).
+
+    The policy decides what to do with them: it is trained on the oracle's actions, not on the scripted
+    follower's."""
+
+    SIZE, RES = 32, 0.25
+    CHANNELS = 4
+    SEEN_S = 3.0
+
+    def reset(self, env, obs, info):
+        super().reset(env, obs, info)
+        g, e = self.map.grid, self.ears
+        self._k = max(1, int(round(self.CELL / g.config.cell)))
+        self._bel = np.zeros((-(-g.shape[0] // self._k), -(-g.shape[1] // self._k)))
+        self._bi = e.cells // self._k
+        self._floor = (g.labels == g.main_label)
+        c = (np.arange(self.SIZE) + 0.5 - self.SIZE / 2) * self.RES
+        self._fwd = -np.repeat(c[:, None], self.SIZE, 1)  # ahead at the top
+        self._left = -np.repeat(c[None, :], self.SIZE, 0)  # left to the left
+        self._routed = False
+        self.image = np.zeros((self.CHANNELS, self.SIZE, self.SIZE), np.uint8)
+
+    def _follow(self, w, goal, slow: float = 0.0):
+        self._routed = True
+        return super()._follow(w, goal, slow)
+
+    def observe(self, obs, info) -> np.ndarray:
+        """Run the scripted follower's step on ``obs`` (its action is dropped) and return the image (C, H, W)
+        uint8 (the same array each step: copy it to keep it)."""
+        self._routed = False
+        self.act(obs, info)
+        p, yaw = self.me.pose[:2], self.me.pose[2]
+        a = math.radians(yaw)
+        ca, sa = math.cos(a), math.sin(a)
+        x = p[0] + ca * self._fwd - sa * self._left
+        y = p[1] + sa * self._fwd + ca * self._left
+        g = self.map.grid
+        rc = g.cell_of(np.stack([x.ravel(), y.ravel()], 1))
+        inside = (rc[:, 0] >= 0) & (rc[:, 0] < g.shape[0]) & (rc[:, 1] >= 0) & (rc[:, 1] < g.shape[1])
+        r, c = np.clip(rc[:, 0], 0, g.shape[0] - 1), np.clip(rc[:, 1], 0, g.shape[1] - 1)
+        img = self.image
+        img[0] = (self._floor[r, c] & inside).reshape(self.SIZE, self.SIZE) * np.uint8(255)
+        b = self.ears.belief[0]
+        self._bel.fill(0.0)
+        self._bel[self._bi[:, 0], self._bi[:, 1]] = b / max(float(b.max()), 1e-12)
+        img[1] = np.round(255 * self._bel[r // self._k, c // self._k] * inside).reshape(self.SIZE, self.SIZE)
+        seen = np.zeros(x.shape)
+        for t, q in self.sightings:
+            age = self.t - t
+            if age <= self.SEEN_S:
+                near = (x - q[0]) ** 2 + (y - q[1]) ** 2 <= (0.3 ** 2)
+                seen = np.where(near, np.maximum(seen, 1.0 - age / self.SEEN_S), seen)
+        img[2] = np.round(255 * seen)
+        img[3] = 0
+        if self._routed and self.path is not None:
+            pts = np.vstack([p[None], self.path[min(self.k, len(self.path) - 1):]])
+            seg = [np.linspace(pts[i], pts[i + 1], max(2, int(np.hypot(*(pts[i + 1] - pts[i])) / 0.1) + 1))
+                   for i in range(len(pts) - 1)]
+            if seg:
+                q = np.vstack(seg) - p
+                f = ca * q[:, 0] + sa * q[:, 1]
+                left = -sa * q[:, 0] + ca * q[:, 1]
+                i = np.floor(self.SIZE / 2 - f / self.RES).astype(int)
+                j = np.floor(self.SIZE / 2 - left / self.RES).astype(int)
+                ok = (i >= 0) & (i < self.SIZE) & (j >= 0) & (j < self.SIZE)
+                img[3, i[ok], j[ok]] = 255
+        return img

@@ -31,6 +31,21 @@ from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threa
                            primitives_for, resolve_device, save_policy as save)
 
 SENSORS = ("depth", "spectrogram", "pose")
+MAP_SENSORS = SENSORS + ("audio",)  # a policy with a map input: EgoMap listens to the raw block
+
+
+def sensors_for(model) -> tuple:
+    """The env sensors ``model`` acts on."""
+    return MAP_SENSORS if getattr(model.cfg, "map_shape", ()) else SENSORS
+
+
+def ego_for(model):
+    """The :class:`agents.following.EgoMap` a policy with a map input reads (None for the others)."""
+    if not getattr(model.cfg, "map_shape", ()):
+        return None
+    from agents.following import EgoMap
+
+    return EgoMap(np.random.default_rng(0))
 
 
 @dataclass
@@ -58,6 +73,7 @@ class ImitationConfig:
     device: str = "cpu"  # where the model trains and acts: cpu, cuda or auto (resolve_device); not part of the recipe
     homes: int = 0  # train homes episodes are drawn from: the first N seeds of the train split (0: the split's
     # default, DEFAULT_HOMES["train"] = 16)
+    egomap: bool = False  # av-nav on speaker following: an egocentric map input (agents.following.EgoMap)
     rollout_steps: int = 0  # a collection episode ends here (a stuck learner's 500 steps teach little); 0: the
     # task's own (200 on navigation, 600 on speaker following, whose episodes run 20-60 s to the catch at the end)
 
@@ -213,13 +229,23 @@ class Dataset:
             yield {k: torch.from_numpy(np.stack(v, 1)) for k, v in out.items()}  # (T, B, ...)
 
 
-def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = None):
+def _map_input(mp, device=None):
+    """The model's egocentric map input in [0, 1] from uint8 (T, B, C, H, W) (None: none)."""
+    if mp is None:
+        return None
+    x = mp.to(device, non_blocking=True) if device is not None else mp
+    return x.float() * (1.0 / 255)
+
+
+def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = None, egomap=None):
     """(action, next hidden state): the mean / most likely action, or with ``rng`` (discrete head) one drawn from
     the policy's distribution; a stop (tasks that have one) only when it is the most likely action, since a stop drawn
-    by chance would end the episode."""
+    by chance would end the episode. ``egomap``: the (C, H, W) uint8 map of a policy that reads one."""
     dev = model.device
+    kw = {} if egomap is None else {"egomap": _map_input(torch.from_numpy(np.ascontiguousarray(egomap))[None, None],
+                                                         dev)}
     with torch.no_grad(), acting_threads():
-        out, _, h = model(*_inputs(*_stack([obs]), dev), h, torch.tensor([[start]], device=dev))
+        out, _, h = model(*_inputs(*_stack([obs]), dev), h, torch.tensor([[start]], device=dev), **kw)
     if rng is not None and model.discrete:
         prob = torch.softmax(out[0, 0].double(), -1).cpu().numpy()
         table = model.table.cpu().numpy()
@@ -240,7 +266,8 @@ def bc_loss(model, b: dict, aux_weight: float) -> tuple[torch.Tensor, dict]:
     m = b["m"]
     starts = torch.zeros(m.shape, device=dev)
     starts[0] = 1.0
-    y, a_feat, _ = model.features(*_inputs(b.get("d"), b["s"], b["p"]), model.initial_state(m.shape[1]), starts)
+    kw = {"egomap": _map_input(b["mp"])} if b.get("mp") is not None else {}
+    y, a_feat, _ = model.features(*_inputs(b.get("d"), b["s"], b["p"]), model.initial_state(m.shape[1]), starts, **kw)
     out = model.head(y)
     if model.discrete:
         per = torch.nn.functional.cross_entropy(out.reshape(-1, out.shape[-1]), model.label(b["a"]).reshape(-1),
@@ -317,7 +344,7 @@ def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, ba
     return out
 
 
-def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0) -> dict:
+def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0) -> dict:  # noqa: C901
     """The policy alone over ``episodes`` of ``split`` homes, acting as the ``av-nav`` agent does (actions drawn
     from the discrete head with a Generator seeded per episode; the continuous head's mean): the means of the task's
     validation scores (``VAL_KEYS``: SR and SPL on navigation; on speaker following ``sr`` is the catch success and
@@ -325,15 +352,19 @@ def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int =
     from sonicverse_core.tasks import make_env
 
     keys = VAL_KEYS.get(task, NAV_VAL)
-    env = make_env(task, split=split, sensors=SENSORS, width=size, height=size)
+    env = make_env(task, split=split, sensors=sensors_for(model), width=size, height=size)
+    ego = ego_for(model)
     got = {k: [] for k in keys}
     try:
         for i in range(episodes):
             obs, info = env.reset(seed=int(np.random.SeedSequence([seed, 7, i]).generate_state(1)[0]))
             h, start, done = model.initial_state(1), True, False
             draw = np.random.default_rng([seed, 8, i])
+            if ego is not None:
+                ego.reset(env, obs, info)
             while not done:
-                a, h = _policy_step(model, obs, h, start, draw)
+                mp = ego.observe(obs, info) if ego is not None else None
+                a, h = _policy_step(model, obs, h, start, draw, mp)
                 start = False
                 obs, _, term, trunc, info = env.step(a.astype(np.float32))
                 done = term or trunc
@@ -349,8 +380,11 @@ def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
     """The untrained policy ``cfg.agent`` names, for the env's spectrogram shape and action size."""
     prims = primitives_for(action_dim) if cfg.head == "discrete" else ()
     if cfg.agent == "av-nav":
+        from agents.following import EgoMap
+
+        shape = (EgoMap.CHANNELS, EgoMap.SIZE, EgoMap.SIZE) if cfg.egomap else ()
         return AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec_shape, action_dim=action_dim,
-                                 primitives=prims, aux_goal=cfg.aux_weight > 0))
+                                 primitives=prims, aux_goal=cfg.aux_weight > 0, map_shape=shape))
     from agents.savi import SAVi, SAViConfig
     from assets_manifest.soundbank import CATEGORIES
 
@@ -374,6 +408,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
         raise ConfigError(f"head must be discrete or continuous, got {cfg.head!r}")
     if cfg.agent not in ("av-nav", "savi", "multitask"):
         raise ConfigError(f"agent must be av-nav, savi or multitask, got {cfg.agent!r}")
+    if cfg.egomap and (cfg.agent != "av-nav" or cfg.task != "SpeakerFollowing"):
+        raise ConfigError("--map is for av-nav on SpeakerFollowing (the task that gives agents its floor plan)")
     resolve_device(cfg.device)  # an unknown or absent device fails before anything is written
     out = Path(out)
     ck_path = out / "model.pt"
@@ -396,8 +432,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    env = make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size,
-                   homes=cfg.homes or None)
+    env = make_env(cfg.task, split="train", sensors=MAP_SENSORS if cfg.egomap else SENSORS, width=cfg.size,
+                   height=cfg.size, homes=cfg.homes or None)
     spec = env.observation_space["spectrogram"].shape
     adim = env.action_space.shape[0]
     if not resume:
@@ -410,6 +446,7 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
         torch.set_rng_state(state["torch_rng"])
     data = Dataset(cfg.dataset_frames)
     expert = expert_for(cfg.task)
+    ego = ego_for(model)
     cap = cfg.rollout_steps or ROLLOUT_STEPS.get(cfg.task, 200)
     labels_c = getattr(model, "category", None) is not None  # SAVi's category targets
     occ_v = getattr(model.cfg, "occupancy", 0)  # the multi-task model's occupancy targets
@@ -433,13 +470,19 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                 expert.reset(env, obs, info)
                 h, start, done = model.initial_state(1), True, False
                 ep = {"d": [], "s": [], "p": [], "a": [], "g": []}
+                if ego is not None:
+                    ego.reset(env, obs, info)
+                    ep["mp"] = []
                 if labels_c:
                     ep["c"] = []
                 if occ_v:
                     ep["o"] = []
                 while not done:
                     a_exp = expert.label(obs, info)
-                    a_pol, h = _policy_step(model, obs, h, start)
+                    mp = ego.observe(obs, info) if ego is not None else None
+                    a_pol, h = _policy_step(model, obs, h, start, egomap=mp)
+                    if mp is not None:
+                        ep["mp"].append(mp.copy())
                     d, s, p = _quantise(obs)
                     ep["d"].append(d)
                     ep["s"].append(s)

@@ -44,19 +44,25 @@ class AVNavAgent(Agent):
         self.sample = True  # draw from the policy (discrete head, the Generator); False: the most likely action
 
     def env_kwargs(self) -> dict:
-        from agents.imitation import SENSORS
+        from agents.imitation import sensors_for
 
-        return {"sensors": SENSORS, "width": self.size, "height": self.size}
+        return {"sensors": sensors_for(self.model), "width": self.size, "height": self.size}
 
     def reset(self, env, obs, info) -> None:
+        from agents.imitation import ego_for
+
         super().reset(env, obs, info)
         self.h = self.model.initial_state(1)
         self.start = True
+        self.ego = ego_for(self.model)  # a policy with a map input: the map it reads (agents.following.EgoMap)
+        if self.ego is not None:
+            self.ego.reset(env, obs, info)
 
     def act(self, obs, info) -> np.ndarray:
         from agents.imitation import _policy_step
 
-        a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None)
+        mp = self.ego.observe(obs, info) if self.ego is not None else None
+        a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None, mp)
         self.start = False
         return np.clip(a, -1, 1).astype(np.float32)
 

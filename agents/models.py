@@ -16,6 +16,10 @@ With ``aux_goal`` the model also predicts where the goal is from the robot (cosi
 log(1 + distance)): from the GRU's state (what it has heard and seen so far) and from the current spectrogram alone.
 These heads are trained beside the policy on the privileged goal position (an auxiliary loss, as SAVi's goal
 predictor) and are not used to act.
+
+With ``map_shape`` (``sonicverse train --map``, speaker following) a third CNN reads an egocentric map
+(:class:`agents.following.EgoMap`: the floor plan, a belief of where the person is from the robot's own ears and
+camera, who the camera saw, the route the scripted follower would take), whose features join the GRU's input.
 """
 from __future__ import annotations
 
@@ -38,6 +42,7 @@ class AVNavConfig:
     hidden: int = 256
     primitives: tuple = ()  # () : the continuous head; else the discrete head's wheel-velocity pairs (+ stop)
     aux_goal: bool = False  # the goal-prediction heads (auxiliary loss)
+    map_shape: tuple = ()  # (C, H, W) of an egocentric map input (agents.following.EgoMap), () for none
 
 
 def primitives_for(action_dim: int) -> tuple:
@@ -120,8 +125,9 @@ class ActorCritic(nn.Module):
     def head(self, y) -> torch.Tensor:
         return self.actor(y) if self.discrete else torch.tanh(self.actor(y))
 
-    def forward(self, depth, spec, pose, hidden, starts):
-        y, _, hidden = self.features(depth, spec, pose, hidden, starts)
+    def forward(self, depth, spec, pose, hidden, starts, egomap=None):
+        kw = {} if egomap is None else {"egomap": egomap}
+        y, _, hidden = self.features(depth, spec, pose, hidden, starts, **kw)
         return self.head(y), self.critic(y).squeeze(-1), hidden
 
     def act(self, out: torch.Tensor) -> torch.Tensor:
@@ -146,7 +152,9 @@ class AVNav(ActorCritic):
         h = cfg.hidden
         self.depth = _cnn(1, cfg.depth_hw, h) if cfg.depth_hw else None  # () : an audio-only policy
         self.audio = _cnn(cfg.spec_shape[0], cfg.spec_shape[1:], h, k=(5, 3, 3), s=(2, 2, 1))
-        self.gru = nn.GRU((2 if cfg.depth_hw else 1) * h + cfg.pose_dim, h)
+        # the egocentric map (EgoMap): floor, belief, sightings, route
+        self.egomap = _cnn(cfg.map_shape[0], cfg.map_shape[1:], h, k=(4, 3, 3), s=(2, 2, 1)) if cfg.map_shape else None
+        self.gru = nn.GRU(((2 if cfg.depth_hw else 1) + (1 if cfg.map_shape else 0)) * h + cfg.pose_dim, h)
         self._heads(h, cfg)
         if cfg.aux_goal:
             self.goal_head = nn.Linear(h, 3)  # from the GRU's state
@@ -155,19 +163,24 @@ class AVNav(ActorCritic):
     def initial_state(self, batch: int) -> torch.Tensor:
         return torch.zeros(1, batch, self.cfg.hidden, device=self.device)
 
-    def encode(self, depth, spec, pose) -> tuple[torch.Tensor, torch.Tensor]:
-        """``depth`` may be None for an audio-only policy."""
+    def encode(self, depth, spec, pose, egomap=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``depth`` may be None for an audio-only policy; ``egomap`` (T, B, C, H, W) in [0, 1], the map input of a
+        policy with ``cfg.map_shape``."""
         T, B = spec.shape[:2]
         a = self.audio((spec.reshape(T * B, *spec.shape[2:]).float() / SPEC_MAX).clamp(0, 1))
         parts = [a, pose.reshape(T * B, -1).float()]
         if self.depth is not None:
             d = (depth.reshape(T * B, *depth.shape[2:]).permute(0, 3, 1, 2).float() / DEPTH_MAX).clamp(0, 1)
             parts.insert(0, self.depth(d))
+        if self.egomap is not None:
+            if egomap is None:
+                raise ValueError("this policy reads an egocentric map: give egomap")
+            parts.append(self.egomap(egomap.reshape(T * B, *egomap.shape[2:]).float()))
         return torch.cat(parts, 1).reshape(T, B, -1), a.reshape(T, B, -1)
 
-    def features(self, depth, spec, pose, hidden, starts):
+    def features(self, depth, spec, pose, hidden, starts, egomap=None):
         """(GRU outputs (T, B, H), audio features (T, B, H), the last hidden state)."""
-        x, a = self.encode(depth, spec, pose)
+        x, a = self.encode(depth, spec, pose, egomap)
         starts = starts.float()
         if x.shape[0] == 1 or not bool(starts[1:].any()):  # no episode starts inside: one call over the sequence
             y, hidden = self.gru(x, hidden * (1.0 - starts[0]).view(1, -1, 1))

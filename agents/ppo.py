@@ -175,6 +175,8 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         check_trained_on(cfg.init, meta, cfg.task)
         if hasattr(model, "stage"):
             model.stage(2)  # SAVi's second stage: the full memory, the encoders frozen
+        if getattr(model.cfg, "map_shape", ()):
+            raise ConfigError(f"{cfg.init} reads an egocentric map (--map): PPO does not fine-tune such policies yet")
         size = model.cfg.depth_hw[0]
         if size != cfg.size:
             raise ConfigError(f"{cfg.init} was trained on {size} px depth, not --size {cfg.size}")

@@ -42,6 +42,8 @@ def cmd_train(a) -> int:
 
     from sonicverse_core.errors import ConfigError
 
+    if a.map and (a.recipe != "dagger" or a.agent != "av-nav" or a.task != "SpeakerFollowing"):
+        raise ConfigError("--map is for --recipe dagger --agent av-nav --task SpeakerFollowing")
     if a.recipe != "ppo" and (a.nproc > 1 or a.init):
         raise ConfigError("--nproc and --init belong to --recipe ppo (DD-PPO fine-tuning)")
     if a.recipe == "ppo" and a.agent in ("savi", "multitask") and not a.init:
@@ -89,7 +91,7 @@ def cmd_train(a) -> int:
         cfg = ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
                               size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
                               aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
-                              homes=a.homes or 0)
+                              homes=a.homes or 0, egomap=a.map)
         res = train(cfg, a.out, progress=progress, resume=a.resume)
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
@@ -354,6 +356,9 @@ def add_task_commands(sub, bench_sub) -> None:
                    "(default: %(default)s)")
     t.add_argument("--homes", type=A.count(1, 5000), default=None,
                    help="draw training episodes from the first N train homes (default: 16)")
+    t.add_argument("--map", action="store_true", help="av-nav on SpeakerFollowing: read an egocentric map "
+                   "(the floor plan, the scripted follower's belief of where the person is, who the camera saw, its "
+                   "route); trained on the oracle's actions")
     t.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
     t.add_argument("--out", default="out/train", type=A.out_dir, help="output folder (default: %(default)s)")
     t.add_argument("--resume", action="store_true", help="go on from --out's model.pt (to more --iterations)")
