@@ -344,7 +344,7 @@ def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, ba
     return out
 
 
-def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0) -> dict:  # noqa: C901
+def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0) -> dict:
     """The policy alone over ``episodes`` of ``split`` homes, acting as the ``av-nav`` agent does (actions drawn
     from the discrete head with a Generator seeded per episode; the continuous head's mean): the means of the task's
     validation scores (``VAL_KEYS``: SR and SPL on navigation; on speaker following ``sr`` is the catch success and
