@@ -422,12 +422,13 @@ def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_
             "--json", "--out", str(tmp_path), check_rc=0)
     res = json.loads(r.stdout)
     assert res["agent"] == "av-nav" and res["time_in_band"]["n"] == 1 and res["time_s"]["mean"] <= 3.0 + 1e-9
-    # the shipped follower keeps the band more than random on test episodes 1-2 (session 32, the map policy: 0.72
-    # against 0.06; on the first 8, 0.49 against 0.09; the README's 30 episodes: 0.450 against 0.088)
+    # the shipped follower keeps the band more than random on test episode 1 (session 32, the map policy: 0.87
+    # against 0.05; episodes 1-2, 0.72 against 0.06; the first 8, 0.49 against 0.09; the README's 30 episodes:
+    # 0.450 against 0.088)
     from app.tasks.run import run_task
 
-    learned = run_task("speaker-following", "av-nav", 2, seed=0, first=1)["time_in_band"]["mean"]
-    rnd = run_task("speaker-following", "random", 2, seed=0, first=1)["time_in_band"]["mean"]
+    learned = run_task("speaker-following", "av-nav", 1, seed=0, first=1)["time_in_band"]["mean"]
+    rnd = run_task("speaker-following", "random", 1, seed=0, first=1)["time_in_band"]["mean"]
     assert learned > rnd + 0.1, (learned, rnd)
     with pytest.raises(ConfigError, match="--checkpoint is for learned agents"):
         run_task("speaker-following", "oracle", 1, checkpoint=default_checkpoint("av-nav", "SpeakerFollowing"))
