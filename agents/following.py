@@ -21,7 +21,7 @@ from collections import deque
 
 import numpy as np
 
-from agents.scripted import Agent, MapDriver, _pursue, _wheels, next_waypoint
+from agents.scripted import Agent, MapDriver, _pursue, _wheels, next_waypoint, window_cells
 
 
 class OracleFollower(Agent):
@@ -227,14 +227,9 @@ class EgoMap(MapFollower):
         self._routed = False
         self.act(obs, info)
         p, yaw = self.me.pose[:2], self.me.pose[2]
+        x, y, r, c, inside = window_cells(self.map.grid, p[0], p[1], yaw, self._fwd, self._left)
         a = math.radians(yaw)
         ca, sa = math.cos(a), math.sin(a)
-        x = p[0] + ca * self._fwd - sa * self._left
-        y = p[1] + sa * self._fwd + ca * self._left
-        g = self.map.grid
-        rc = g.cell_of(np.stack([x.ravel(), y.ravel()], 1))
-        inside = (rc[:, 0] >= 0) & (rc[:, 0] < g.shape[0]) & (rc[:, 1] >= 0) & (rc[:, 1] < g.shape[1])
-        r, c = np.clip(rc[:, 0], 0, g.shape[0] - 1), np.clip(rc[:, 1], 0, g.shape[1] - 1)
         img = self.image
         img[0] = (self._floor[r, c] & inside).reshape(self.SIZE, self.SIZE) * np.uint8(255)
         b = self.ears.belief[0]

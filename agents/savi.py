@@ -307,13 +307,10 @@ def true_occupancy(world, V: int) -> np.ndarray:
     f = (np.arange(V) + 0.5) * cell
     left = EXTENT / 2 - (np.arange(V) + 0.5) * cell
     F, Lf = np.meshgrid(f, left, indexing="ij")
-    a = math.radians(yaw)
-    wx = x + math.cos(a) * F - math.sin(a) * Lf
-    wy = y + math.sin(a) * F + math.cos(a) * Lf
-    rc = g.cell_of(np.stack([wx.ravel(), wy.ravel()], 1))
-    inside = (rc[:, 0] >= 0) & (rc[:, 0] < g.shape[0]) & (rc[:, 1] >= 0) & (rc[:, 1] < g.shape[1])
-    free = np.zeros(len(rc), bool)
-    free[inside] = g.floor[rc[inside, 0], rc[inside, 1]]
+    from agents.scripted import window_cells
+
+    _, _, r, c, inside = window_cells(g, x, y, yaw, F, Lf)
+    free = g.floor[r, c] & inside
     return (~free).reshape(V, V).astype(np.uint8)
 
 

@@ -469,6 +469,19 @@ def itd_gcc_phat(audio: np.ndarray, sr: int, max_itd: float) -> tuple[float, flo
     return (k - lag + frac) / sr, e
 
 
+def window_cells(grid, x: float, y: float, yaw: float, fwd: np.ndarray, left: np.ndarray):
+    """A window of points ``fwd`` m ahead of and ``left`` m to the left of a robot at (``x``, ``y``) facing ``yaw``
+    degrees, on ``grid`` (a NavGrid): the points' world x and y (shaped as ``fwd``), and per point (flattened) the
+    grid's row and column (clipped into the grid) and whether the point lies inside it."""
+    a = math.radians(yaw)
+    ca, sa = math.cos(a), math.sin(a)
+    wx = x + ca * fwd - sa * left
+    wy = y + sa * fwd + ca * left
+    rc = grid.cell_of(np.stack([wx.ravel(), wy.ravel()], 1))
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < grid.shape[0]) & (rc[:, 1] >= 0) & (rc[:, 1] < grid.shape[1])
+    return wx, wy, np.clip(rc[:, 0], 0, grid.shape[0] - 1), np.clip(rc[:, 1], 0, grid.shape[1] - 1), inside
+
+
 def map_depth(occ: np.ndarray, depth: np.ndarray, p, yaw: float, fx: float, camera_height: float, cell: float,
               stride: int = 4) -> None:
     """Count obstacle hits (points 0.08-0.6 m above the floor) of a depth image into an occupancy grid ``occ``
