@@ -222,10 +222,10 @@ class EgoMap(MapFollower):
         return super()._follow(w, goal, slow)
 
     def observe(self, obs, info) -> np.ndarray:
-        """Run the scripted follower's step on ``obs`` (its action is dropped) and return the image (C, H, W)
-        uint8 (the same array each step: copy it to keep it)."""
+        """Run the scripted follower's step on ``obs`` (its action is kept in ``self.action``, not taken) and return
+        the image (C, H, W) uint8 (the same array each step: copy it to keep it)."""
         self._routed = False
-        self.act(obs, info)
+        self.action = self.act(obs, info)  # the scripted follower's (``train --teacher scripted``'s labels)
         p, yaw = self.me.pose[:2], self.me.pose[2]
         x, y, r, c, inside = window_cells(self.map.grid, p[0], p[1], yaw, self._fwd, self._left)
         a = math.radians(yaw)

@@ -34,18 +34,34 @@ SENSORS = ("depth", "spectrogram", "pose")
 MAP_SENSORS = SENSORS + ("audio",)  # a policy with a map input: EgoMap listens to the raw block
 
 
+MAP_TASKS = {"SpeakerFollowing": "follow", "AudioGoal": "nav", "SemanticAudioNav": "nav"}  # train --map: which map
+
+
+def _map_kind(model) -> str | None:
+    return getattr(model.cfg, "map_kind", "follow") if getattr(model.cfg, "map_shape", ()) else None
+
+
 def sensors_for(model) -> tuple:
     """The env sensors ``model`` acts on."""
-    return MAP_SENSORS if getattr(model.cfg, "map_shape", ()) else SENSORS
+    return MAP_SENSORS if _map_kind(model) == "follow" else SENSORS
+
+
+def map_class(kind: str):
+    """The map a ``map_kind`` names: "follow" :class:`agents.following.EgoMap` (speaker following, from the task's
+    floor plan), "nav" :class:`agents.navmap.NavEgoMap` (navigation, built from depth, sound and odometry)."""
+    if kind == "follow":
+        from agents.following import EgoMap
+
+        return EgoMap
+    from agents.navmap import NavEgoMap
+
+    return NavEgoMap
 
 
 def ego_for(model):
-    """The :class:`agents.following.EgoMap` a policy with a map input reads (None for the others)."""
-    if not getattr(model.cfg, "map_shape", ()):
-        return None
-    from agents.following import EgoMap
-
-    return EgoMap(np.random.default_rng(0))
+    """The egocentric map a policy with a map input reads (None for the others)."""
+    kind = _map_kind(model)
+    return None if kind is None else map_class(kind)(np.random.default_rng(0))
 
 
 @dataclass
@@ -73,7 +89,10 @@ class ImitationConfig:
     device: str = "cpu"  # where the model trains and acts: cpu, cuda or auto (resolve_device); not part of the recipe
     homes: int = 0  # train homes episodes are drawn from: the first N seeds of the train split (0: the split's
     # default, DEFAULT_HOMES["train"] = 16)
-    egomap: bool = False  # av-nav on speaker following: an egocentric map input (agents.following.EgoMap)
+    egomap: bool = False  # av-nav: an egocentric map input (MAP_TASKS: EgoMap when following, else NavEgoMap)
+    teacher: str = "oracle"  # whose actions are the labels: the privileged "oracle", or (speaker following with
+    # the map) the "scripted" follower, which acts on what the map shows, so its labels do not ask for what the
+    # policy cannot know (the imitation gap); the goal heads still learn where the person is from the oracle
     rollout_steps: int = 0  # a collection episode ends here (a stuck learner's 500 steps teach little); 0: the
     # task's own (200 on navigation, 600 on speaker following, whose episodes run 20-60 s to the catch at the end)
 
@@ -380,11 +399,11 @@ def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
     """The untrained policy ``cfg.agent`` names, for the env's spectrogram shape and action size."""
     prims = primitives_for(action_dim) if cfg.head == "discrete" else ()
     if cfg.agent == "av-nav":
-        from agents.following import EgoMap
-
-        shape = (EgoMap.CHANNELS, EgoMap.SIZE, EgoMap.SIZE) if cfg.egomap else ()
+        kind = MAP_TASKS.get(cfg.task, "nav")
+        M = map_class(kind)
+        shape = (M.CHANNELS, M.SIZE, M.SIZE) if cfg.egomap else ()
         return AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec_shape, action_dim=action_dim,
-                                 primitives=prims, aux_goal=cfg.aux_weight > 0, map_shape=shape))
+                                 primitives=prims, aux_goal=cfg.aux_weight > 0, map_shape=shape, map_kind=kind))
     from agents.savi import SAVi, SAViConfig
     from assets_manifest.soundbank import CATEGORIES
 
@@ -408,8 +427,12 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
         raise ConfigError(f"head must be discrete or continuous, got {cfg.head!r}")
     if cfg.agent not in ("av-nav", "savi", "multitask"):
         raise ConfigError(f"agent must be av-nav, savi or multitask, got {cfg.agent!r}")
-    if cfg.egomap and (cfg.agent != "av-nav" or cfg.task != "SpeakerFollowing"):
-        raise ConfigError("--map is for av-nav on SpeakerFollowing (the task that gives agents its floor plan)")
+    if cfg.egomap and (cfg.agent != "av-nav" or cfg.task not in MAP_TASKS):
+        raise ConfigError(f"--map is for av-nav on {', '.join(MAP_TASKS)}")
+    if cfg.teacher not in ("oracle", "scripted"):
+        raise ConfigError(f"teacher must be oracle or scripted, got {cfg.teacher!r}")
+    if cfg.teacher == "scripted" and not (cfg.egomap and MAP_TASKS.get(cfg.task) == "follow"):
+        raise ConfigError("--teacher scripted is for --map on SpeakerFollowing (the scripted follower draws the map)")
     resolve_device(cfg.device)  # an unknown or absent device fails before anything is written
     out = Path(out)
     ck_path = out / "model.pt"
@@ -432,7 +455,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    env = make_env(cfg.task, split="train", sensors=MAP_SENSORS if cfg.egomap else SENSORS, width=cfg.size,
+    follow = cfg.egomap and MAP_TASKS.get(cfg.task) == "follow"  # EgoMap listens to the raw audio block
+    env = make_env(cfg.task, split="train", sensors=MAP_SENSORS if follow else SENSORS, width=cfg.size,
                    height=cfg.size, homes=cfg.homes or None)
     spec = env.observation_space["spectrogram"].shape
     adim = env.action_space.shape[0]
@@ -480,6 +504,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                 while not done:
                     a_exp = expert.label(obs, info)
                     mp = ego.observe(obs, info) if ego is not None else None
+                    if cfg.teacher == "scripted":
+                        a_exp = np.asarray(ego.action, np.float32)
                     a_pol, h = _policy_step(model, obs, h, start, egomap=mp)
                     if mp is not None:
                         ep["mp"].append(mp.copy())

@@ -17,9 +17,11 @@ log(1 + distance)): from the GRU's state (what it has heard and seen so far) and
 These heads are trained beside the policy on the privileged goal position (an auxiliary loss, as SAVi's goal
 predictor) and are not used to act.
 
-With ``map_shape`` (``sonicverse train --map``, speaker following) a third CNN reads an egocentric map
-(:class:`agents.following.EgoMap`: the floor plan, a belief of where the person is from the robot's own ears and
-camera, who the camera saw, the route the scripted follower would take), whose features join the GRU's input.
+With ``map_shape`` (``sonicverse train --map``) a third CNN reads an egocentric map whose features join the GRU's
+input: on speaker following (``map_kind`` "follow") :class:`agents.following.EgoMap` (the floor plan, a belief of
+where the person is from the robot's own ears and camera, who the camera saw, the route the scripted follower would
+take); on AudioGoal and SemanticAudioNav ("nav") :class:`agents.navmap.NavEgoMap` (what the robot mapped itself:
+obstacles and floor from depth, how loud the sound was where it stood, its track).
 """
 from __future__ import annotations
 
@@ -42,7 +44,8 @@ class AVNavConfig:
     hidden: int = 256
     primitives: tuple = ()  # () : the continuous head; else the discrete head's wheel-velocity pairs (+ stop)
     aux_goal: bool = False  # the goal-prediction heads (auxiliary loss)
-    map_shape: tuple = ()  # (C, H, W) of an egocentric map input (agents.following.EgoMap), () for none
+    map_shape: tuple = ()  # (C, H, W) of an egocentric map input, () for none
+    map_kind: str = "follow"  # which map: "follow" agents.following.EgoMap, "nav" agents.navmap.NavEgoMap
 
 
 def primitives_for(action_dim: int) -> tuple:

@@ -483,9 +483,10 @@ def window_cells(grid, x: float, y: float, yaw: float, fwd: np.ndarray, left: np
 
 
 def map_depth(occ: np.ndarray, depth: np.ndarray, p, yaw: float, fx: float, camera_height: float, cell: float,
-              stride: int = 4) -> None:
+              stride: int = 4, floor: np.ndarray | None = None) -> None:
     """Count obstacle hits (points 0.08-0.6 m above the floor) of a depth image into an occupancy grid ``occ``
-    (cells of ``cell`` m, centred on the odometry origin) seen from pose ``p`` (x, y), ``yaw`` degrees."""
+    (cells of ``cell`` m, centred on the odometry origin) seen from pose ``p`` (x, y), ``yaw`` degrees; with
+    ``floor`` (a boolean grid of the same shape) mark the cells where it sees the floor (points below 0.08 m)."""
     H, W = depth.shape
     rows = np.arange(0, H, stride)
     cols = np.arange(0, W, stride)
@@ -502,9 +503,15 @@ def map_depth(occ: np.ndarray, depth: np.ndarray, p, yaw: float, fx: float, came
     wx = p[0] + math.cos(a) * fwd - math.sin(a) * left
     wy = p[1] + math.sin(a) * fwd + math.cos(a) * left
     size = occ.shape[0]
-    idx = np.floor(np.stack([wx[obst], wy[obst]], 1) / cell).astype(int) + size // 2
-    good = (idx >= 0).all(1) & (idx < size).all(1)
-    np.add.at(occ, (idx[good, 0], idx[good, 1]), 1)
+
+    def cells(sel):
+        idx = np.floor(np.stack([wx[sel], wy[sel]], 1) / cell).astype(int) + size // 2
+        good = (idx >= 0).all(1) & (idx < size).all(1)
+        return idx[good, 0], idx[good, 1]
+
+    np.add.at(occ, cells(obst), 1)
+    if floor is not None:
+        floor[cells(ok & (height <= 0.08))] = True
 
 
 def _grid_path(blocked: np.ndarray, start, goal):

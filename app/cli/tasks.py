@@ -42,8 +42,12 @@ def cmd_train(a) -> int:
 
     from sonicverse_core.errors import ConfigError
 
-    if a.map and (a.recipe != "dagger" or a.agent != "av-nav" or a.task != "SpeakerFollowing"):
-        raise ConfigError("--map is for --recipe dagger --agent av-nav --task SpeakerFollowing")
+    if a.teacher != "oracle" and not (a.map and a.recipe == "dagger" and a.task == "SpeakerFollowing"):
+        raise ConfigError("--teacher scripted is for --recipe dagger --map --task SpeakerFollowing")
+    if a.map and (a.recipe != "dagger" or a.agent != "av-nav"
+                  or a.task not in ("SpeakerFollowing", "AudioGoal", "SemanticAudioNav")):
+        raise ConfigError("--map is for --recipe dagger --agent av-nav --task SpeakerFollowing|AudioGoal|"
+                          "SemanticAudioNav")
     if a.recipe != "ppo" and (a.nproc > 1 or a.init):
         raise ConfigError("--nproc and --init belong to --recipe ppo (DD-PPO fine-tuning)")
     if a.recipe == "ppo" and a.agent in ("savi", "multitask") and not a.init:
@@ -91,7 +95,7 @@ def cmd_train(a) -> int:
         cfg = ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
                               size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
                               aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
-                              homes=a.homes or 0, egomap=a.map)
+                              homes=a.homes or 0, egomap=a.map, teacher=a.teacher)
         res = train(cfg, a.out, progress=progress, resume=a.resume)
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
@@ -356,9 +360,14 @@ def add_task_commands(sub, bench_sub) -> None:
                    "(default: %(default)s)")
     t.add_argument("--homes", type=A.count(1, 5000), default=None,
                    help="draw training episodes from the first N train homes (default: 16)")
-    t.add_argument("--map", action="store_true", help="av-nav on SpeakerFollowing: read an egocentric map "
-                   "(the floor plan, the scripted follower's belief of where the person is, who the camera saw, its "
-                   "route); trained on the oracle's actions")
+    t.add_argument("--map", action="store_true", help="av-nav: read an egocentric map; on "
+                   "SpeakerFollowing the floor plan, the scripted follower's belief of where the person is, who the "
+                   "camera saw, its route; on AudioGoal and SemanticAudioNav what the robot mapped itself: obstacles "
+                   "and floor from depth, how loud the sound was where it stood, its track; trained on --teacher's "
+                   "actions")
+    t.add_argument("--teacher", choices=("oracle", "scripted"), default="oracle",
+                   help="imitation: whose actions the policy learns, the privileged oracle's or (--map on "
+                   "SpeakerFollowing) the scripted follower's, which sees what the map shows (default: %(default)s)")
     t.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
     t.add_argument("--out", default="out/train", type=A.out_dir, help="output folder (default: %(default)s)")
     t.add_argument("--resume", action="store_true", help="go on from --out's model.pt (to more --iterations)")
