@@ -21,7 +21,7 @@ from collections import deque
 
 import numpy as np
 
-from agents.scripted import Agent, MapDriver, _pursue, _wheels, next_waypoint, window_cells
+from agents.scripted import Agent, MapDriver, _pursue, _wheels, ego_offsets, next_waypoint, window_cells
 
 
 class OracleFollower(Agent):
@@ -211,9 +211,7 @@ class EgoMap(MapFollower):
         self._bel = np.zeros((-(-g.shape[0] // self._k), -(-g.shape[1] // self._k)))
         self._bi = e.cells // self._k
         self._floor = (g.labels == g.main_label)
-        c = (np.arange(self.SIZE) + 0.5 - self.SIZE / 2) * self.RES
-        self._fwd = -np.repeat(c[:, None], self.SIZE, 1)  # ahead at the top
-        self._left = -np.repeat(c[None, :], self.SIZE, 0)  # left to the left
+        self._fwd, self._left = ego_offsets(self.SIZE, self.RES)
         self._routed = False
         self.image = np.zeros((self.CHANNELS, self.SIZE, self.SIZE), np.uint8)
 

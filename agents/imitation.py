@@ -61,7 +61,7 @@ def map_class(kind: str):
 def ego_for(model):
     """The egocentric map a policy with a map input reads (None for the others)."""
     kind = _map_kind(model)
-    return None if kind is None else map_class(kind)(np.random.default_rng(0))
+    return None if kind is None else map_class(kind)()
 
 
 @dataclass

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from agents.scripted import map_depth
+from agents.scripted import ego_offsets, map_depth
 
 
 class NavEgoMap:
@@ -35,9 +35,6 @@ class NavEgoMap:
     TRACK_S = 30.0
     RANGE_DB = 40.0
 
-    def __init__(self, rng: np.random.Generator | None = None):
-        self.rng = rng if rng is not None else np.random.default_rng(0)
-
     def reset(self, env, obs, info) -> None:
         n = int(round(self.WORLD / self.RES))
         self.n = n
@@ -50,9 +47,7 @@ class NavEgoMap:
         self.dt = env.cfg.step_seconds
         self.camera_height = env.robot.camera_height
         self.fx = (env.cfg.width / 2) / math.tan(math.radians(env.cfg.hfov) / 2)
-        c = (np.arange(self.SIZE) + 0.5 - self.SIZE / 2) * self.RES
-        self._fwd = -np.repeat(c[:, None], self.SIZE, 1)  # ahead at the top
-        self._left = -np.repeat(c[None, :], self.SIZE, 0)  # left to the left
+        self._fwd, self._left = ego_offsets(self.SIZE, self.RES)
         self.image = np.zeros((self.CHANNELS, self.SIZE, self.SIZE), np.uint8)
 
     def _cell(self, xy) -> np.ndarray:

@@ -469,6 +469,13 @@ def itd_gcc_phat(audio: np.ndarray, sr: int, max_itd: float) -> tuple[float, flo
     return (k - lag + frac) / sr, e
 
 
+def ego_offsets(size: int, res: float) -> tuple[np.ndarray, np.ndarray]:
+    """The metres ahead of and to the left of the robot of each pixel centre of an egocentric image of ``size`` x
+    ``size`` pixels of ``res`` m, the robot at the centre facing the top, its left to the left: (fwd, left)."""
+    c = (np.arange(size) + 0.5 - size / 2) * res
+    return -np.repeat(c[:, None], size, 1), -np.repeat(c[None, :], size, 0)
+
+
 def window_cells(grid, x: float, y: float, yaw: float, fwd: np.ndarray, left: np.ndarray):
     """A window of points ``fwd`` m ahead of and ``left`` m to the left of a robot at (``x``, ``y``) facing ``yaw``
     degrees, on ``grid`` (a NavGrid): the points' world x and y (shaped as ``fwd``), and per point (flattened) the
