@@ -146,6 +146,28 @@ def test_callback_logs_when_each_xrun_happened_and_keeps_the_mic_ring_in_step():
     assert tele["xrun_callback_ms"][0] == 9.0 and 0 < tele["xrun_callback_ms"][1] < 1000 * B / FS
     assert int(eng.sh.mic.head[0]) == int(eng.sh.tele[C.FRAMES]) == 10 * B
     assert len(core.r.listeners) == 1  # role 'user': the robots are rendered elsewhere
+    assert tele["cycle_blocks"] is None and tele["xrun_blocks"] == 2 and tele["cycle_ms"] == tele["block_ms"]
+    # a JACK cycle of two blocks (--jack-period 512): PortAudio calls back twice a cycle and flags both callbacks of
+    # a late cycle. Measured on a JACK dummy server at 512: the flags come in pairs 5.3 ms apart. One xrun each.
+    eng.info = {"host_period": 2 * B}
+    eng.mark()
+    for k in range(12):
+        core.callback(ind, outd, B, None, sd.CallbackFlags(0x4 if k in (4, 5, 8, 9) else 0))
+    c0 = 10  # callbacks before the mark
+    dur = eng.sh.durations.data[0]
+    dur[c0:c0 + 12] = 0.001
+    dur[c0 + 2], dur[c0 + 3] = 0.004, 0.005  # the cycle before the first xrun: 9 ms, under the 10.7 ms period
+    dur[c0 + 6] = 0.011  # the cycle before the second: 12 ms, over it
+    tele = eng.telemetry()
+    assert tele["xrun_blocks"] == 4 and tele["xruns"] == 2 and tele["cycle_blocks"] == 2
+    assert tele["cycle_ms"] == pytest.approx(2 * 1000 * B / FS, abs=1e-3)
+    np.testing.assert_allclose(tele["xrun_at_s"], [4 * B / FS, 8 * B / FS], atol=1e-3)
+    np.testing.assert_allclose(tele["xrun_callback_ms"], [9.0, 12.0], atol=1e-3)
+    # two late cycles in a row are two xruns, not one run of four flagged blocks
+    eng.mark()
+    for k in range(8):
+        core.callback(ind, outd, B, None, sd.CallbackFlags(0x4 if k in (2, 3, 4, 5) else 0))
+    assert eng.telemetry()["xruns"] == 2
 
 
 def test_platform_probe_and_realtime_settings():

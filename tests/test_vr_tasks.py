@@ -132,12 +132,15 @@ def test_live_audio_task_in_the_loop_on_jack(jack):
 
 def test_bench_vr_task_runs_its_jack_server_at_the_period_asked(cli):
     """``bench vr --task T --jack-period 512``: the private JACK server runs 512 frames a cycle (as the server
-    reports it), the engine's 256-frame callbacks run two a cycle, and the run is counted as usual."""
+    reports it), the engine's 256-frame callbacks run two a cycle, and xruns are counted per cycle (the worker asked
+    the server its period: two blocks a cycle)."""
     r = cli("bench", "vr", "--task", "orientation-training", "--audio-seconds", "0.5", "--jack-period", "512",
             "--json")
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout.strip().splitlines()[-1])
     assert d["jack_period"] == 512 and d["callbacks"] >= 0.5 * 48000 / 256 * 0.8 and d["callback_errors"] == 0
+    assert d["cycle_blocks"] == 2 and d["platform"]["period_ms"] == pytest.approx(10.667, abs=1e-3)
+    assert d["xruns"] <= d["xrun_blocks"] <= 2 * d["xruns"]
 
 
 def test_vr_task_command(cli, tmp_path):

@@ -305,19 +305,41 @@ class AudioEngine:
         x0 = max(x1 - int(t[C.XRUNS]), x1 - C.XRUN_LOG, 0)
         c0 = int(m[C.CALLBACKS]) if m is not None else 0
         at = [int(self.sh.xrun_at[k % C.XRUN_LOG]) for k in range(x0, x1)]
-        xrun_s = [round((i - c0) * block_ms / 1000, 3) for i in at]
-        # the longest of the two callbacks before each flagged one (PortAudio flags the block after the late one):
-        # above a period, the callback itself overran; below it, it was woken late or the server was
-        xrun_cb = [round(max((float(self.sh.durations.data[0, j % C.DURATIONS]) * 1000
-                              for j in (i - 2, i - 1) if 0 <= j and n - j <= C.DURATIONS), default=float("nan")), 3)
-                   for i in at]
+        # PortAudio splits a JACK cycle of k blocks into k callbacks and flags each of a late cycle: one xrun is the
+        # cycle's first flagged block (k = 1 when the server's period is not known: each flagged block counts)
+        period = (self.info or {}).get("host_period")
+        k = max(1, int(period) // self.cfg.block) if period else 1
+        events: list[int] = []
+        for i in at:
+            if not events or i - events[-1] >= k:
+                events.append(i)
+        unlogged = int(t[C.XRUNS]) - len(at)  # flagged blocks older than the log's XRUN_LOG: counted k to an xrun
+        xruns = len(events) + (-(-unlogged // k) if unlogged > 0 else 0)
+        xrun_s = [round((i - c0) * block_ms / 1000, 3) for i in events]
+
+        def cycle_ms(j0: int) -> float:  # the callbacks' time in the cycle of blocks j0 .. j0 + k - 1, ms
+            js = range(j0, j0 + k)
+            if j0 < 0 or any(n - j > C.DURATIONS or j >= n for j in js):
+                return float("nan")
+            return sum(float(self.sh.durations.data[0, j % C.DURATIONS]) for j in js) * 1000
+
+        # the longer of the two cycles before each flagged one (PortAudio flags the cycle after the late one):
+        # above a period, the callbacks themselves overran; below it, they were woken late or the server was
+        xrun_cb = []
+        for i in events:
+            c = [v for v in (cycle_ms(i - 2 * k), cycle_ms(i - k)) if v == v]
+            xrun_cb.append(round(max(c), 3) if c else float("nan"))
         return {
             "state": self.state, "callbacks": int(t[C.CALLBACKS]), "frames": int(t[C.FRAMES]),
-            "xruns": int(t[C.XRUNS]), "input_overflows": int(t[C.IN_OVERFLOW]),
+            "xruns": xruns,  # late cycles of the audio server (JACK: per cycle, not per block; see cycle_blocks)
+            "xrun_blocks": int(t[C.XRUNS]),  # callbacks PortAudio flagged (k per xrun on a JACK cycle of k blocks)
+            "cycle_blocks": k if period else None,  # the server's cycle in blocks; None: not known (JACK not asked)
+            "input_overflows": int(t[C.IN_OVERFLOW]),
             "output_underflows": int(t[C.OUT_UNDERFLOW]), "callback_errors": int(t[C.ERRORS]),
-            "xrun_at_s": xrun_s,  # stream time of each xrun (the newest XRUN_LOG), from the window's start
-            "xrun_callback_ms": xrun_cb,  # the longest of the two callbacks before each xrun, ms
+            "xrun_at_s": xrun_s,  # stream time of each xrun (the newest XRUN_LOG blocks), from the window's start
+            "xrun_callback_ms": xrun_cb,  # the callbacks' time in the longer of the two cycles before each xrun, ms
             "block_ms": round(block_ms, 3),
+            "cycle_ms": round(block_ms * k, 3),  # the period the xruns are judged against
             "callback_ms": {"median": round(float(np.median(d)), 3) if d.size else None,
                             "p99": round(float(np.percentile(d, 99)), 3) if d.size else None,
                             "max": round(float(d.max()), 3) if d.size else None},

@@ -209,7 +209,7 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
             t = t1 - t0
         tele = eng.telemetry()
         platform = probe.result()
-        platform.update(probe.attribute(tele["xrun_at_s"], tele["block_ms"], callback_ms=tele["xrun_callback_ms"]))
+        platform.update(probe.attribute(tele["xrun_at_s"], tele["cycle_ms"], callback_ms=tele["xrun_callback_ms"]))
     finally:
         eng.stop()
         if vis is not None:

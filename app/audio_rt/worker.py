@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import gc
 import os
+import subprocess
 import time
 
 import numpy as np
@@ -70,6 +71,9 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str
         sh.tele[C.CB_POLICY] = -1  # the first callback writes its thread's scheduling
         stream.start()
         sh.tele[C.STATE] = C.RUNNING
+        # JACK calls back once a cycle and PortAudio splits the cycle into blocks, flagging each block of a late cycle:
+        # the telemetry counts xruns per cycle, so it needs the server's frames per cycle (None: not a JACK device)
+        host_period = _jack_period() if "JACK" in out_dev["hostapi"] else None
     except SonicverseError as exc:
         sh.tele[C.STATE] = C.FAILED
         conn.send(("error", type(exc).__name__, str(exc)))
@@ -87,7 +91,7 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str
                          "subsystems": core.r.subsystems, "doors": core.doors, "mode": cfg.mode,
                          "pid": os.getpid(), "jack_client": client if "JACK" in out_dev["hostapi"] else None,
                          "cpu_latency_request": "held" if qos.held else f"not held ({qos.why})",
-                         "supervisor_scheduling": sched}))
+                         "supervisor_scheduling": sched, "host_period": host_period}))
     if not in_thread:
         import sys
 
@@ -214,6 +218,17 @@ def _realtime(prio: int) -> str:
         return f"SCHED_FIFO {prio}"
     except (OSError, AttributeError) as exc:
         return f"time-shared (SCHED_FIFO refused: {getattr(exc, 'strerror', None) or exc})"
+
+
+def _jack_period() -> int | None:
+    """The JACK server's frames per cycle at the stream's start; None when jack_bufsize cannot say (the telemetry
+    then counts each flagged block as an xrun and says so: ``cycle_blocks`` None)."""
+    from app.audio_rt.jack import jack_buffer_size
+
+    try:
+        return jack_buffer_size()
+    except (SonicverseError, OSError, ValueError, subprocess.SubprocessError):
+        return None
 
 
 def _realtime_supervisor() -> str:
