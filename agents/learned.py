@@ -3,7 +3,9 @@ on (the harness builds the env with :meth:`AVNavAgent.env_kwargs`), with its GRU
 each action drawn from the policy with the agent's Generator (discrete head; as Habitat's and SoundSpaces'
 evaluations do) or the continuous head's mean. ``av-nav-greedy`` takes the most likely action instead: on the 30
 AudioGoal test episodes of the README it reaches 20% SR where drawing reaches 46.7%, because a greedy policy that
-meets furniture repeats the same choice and stays stuck."""
+meets furniture repeats the same choice and stays stuck. A checkpoint may be an ensemble of av-nav policies
+(``sonicverse train --ensemble``; :class:`agents.models.PolicyEnsemble`): the action is then drawn from the mean of
+their distributions, each member carrying its own GRU state."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -255,15 +255,133 @@ def load(path) -> tuple[AVNav, dict]:
 POLICIES = ("av-nav", "savi", "multitask")  # the learned policies' architectures (checkpoints' "arch")
 
 
-def load_policy(path, arch: str | None = None):
-    """(model, meta) of any learned policy's checkpoint (``arch``: the one expected, else whichever it holds)."""
+class PolicyEnsemble(nn.Module):
+    """Several AV-Nav policies with one configuration (sensors, map, discrete actions) acting as one: each keeps its
+    own recurrent state, and the ensemble's action distribution is the mean of theirs (its output is the log of that
+    mean, so a softmax of it, or its argmax, is what :func:`agents.imitation._policy_step` reads). For acting only:
+    it does not train. It is an experiment that did not pay: on the 30 test episodes of speaker following, two
+    members (seeds 0 and 1) kept the band 0.749 of the time and three (seeds 0-2) 0.695, against 0.734 and 0.715
+    alone, all within the noise (the paired 95% intervals span zero), so no ensemble ships (README, "Learned
+    agents")."""
+
+    arch = "ensemble"
+
+    def __init__(self, members: list):
+        super().__init__()
+        from sonicverse_core.errors import ConfigError
+
+        if len(members) < 2:
+            raise ConfigError("an ensemble needs two policies or more")
+        cfg = members[0].cfg
+        for m in members:
+            if not isinstance(m, AVNav) or not m.discrete:
+                raise ConfigError("an ensemble's members are AV-Nav policies with the discrete head")
+            if asdict(m.cfg) != asdict(cfg):
+                raise ConfigError("an ensemble's members must share one configuration (sensors, map, actions): "
+                                  f"{_config_diff(asdict(cfg), asdict(m.cfg))}")
+        self.members = nn.ModuleList(members)
+        self.cfg = cfg
+        self.discrete = True
+        self.register_buffer("table", members[0].table.clone(), persistent=False)
+
+    @property
+    def device(self) -> torch.device:
+        return self.members[0].device
+
+    def initial_state(self, batch: int) -> torch.Tensor:
+        """The members' states stacked: (members, layers, batch, hidden)."""
+        return torch.stack([m.initial_state(batch) for m in self.members])
+
+    def forward(self, depth, spec, pose, hidden, starts, egomap=None):
+        probs, values, states = [], [], []
+        for m, h in zip(self.members, hidden):
+            out, v, h = m(depth, spec, pose, h, starts, egomap=egomap)
+            probs.append(torch.softmax(out.float(), -1))
+            values.append(v)
+            states.append(h)
+        p = torch.stack(probs).mean(0)
+        return torch.log(p.clamp_min(1e-12)), torch.stack(values).mean(0), torch.stack(states)
+
+    def act(self, out: torch.Tensor) -> torch.Tensor:
+        """The most likely primitive of the mean distribution."""
+        return self.table[out.argmax(-1)]
+
+
+def _config_diff(a: dict, b: dict) -> str:
+    return ", ".join(f"{k} {a.get(k)!r} vs {b.get(k)!r}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k))
+
+
+def write_ensemble(paths, out, half: bool = True, task: str | None = None) -> dict:
+    """One checkpoint holding the policies in ``paths`` (AV-Nav checkpoints trained on one task, ``task`` when
+    given, with one configuration) as a :class:`PolicyEnsemble`; ``half`` stores float16 weights. Returns its
+    meta."""
+    from pathlib import Path
+
+    from sonicverse_core.errors import ConfigError
+    from sonicverse_core.storage import atomic_write
+
+    models, metas = zip(*(load(p) for p in paths))
+    PolicyEnsemble(list(models))  # the members agree (one configuration, discrete heads), or a ConfigError says why
+    tasks = {(mt.get("config") or {}).get("task") for mt in metas}
+    if len(tasks) > 1:
+        raise ConfigError(f"an ensemble's members are trained on one task, not {sorted(map(str, tasks))}")
+    if task is not None and tasks != {task}:
+        raise ConfigError(f"the checkpoints were trained on {tasks.pop()}, not {task}")
+    members = []
+    for m, mt in zip(models, metas):
+        state = {k: (v.half() if half and v.is_floating_point() else v).detach().cpu()
+                 for k, v in m.state_dict().items()}
+        members.append({"arch": "av-nav", "config": asdict(m.cfg), "state": state, "meta": mt})
+    meta = {"recipe": "ensemble", "config": {"task": tasks.pop()},
+            "members": [{"source": str(Path(p)), "seed": (mt.get("config") or {}).get("seed"),
+                         "iteration": mt.get("iteration")} for p, mt in zip(paths, metas)]}
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(out) as f:
+        torch.save({"arch": "ensemble", "members": members, "meta": meta}, f)
+    return meta
+
+
+def load_ensemble(path) -> tuple[PolicyEnsemble, dict]:
+    """(:class:`PolicyEnsemble` in eval mode, meta) from a file :func:`write_ensemble` wrote."""
+    from pathlib import Path
+
     from sonicverse_core.errors import ConfigError
 
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"policy ensemble not found: {p}")
+    try:
+        ck = torch.load(p, map_location="cpu", weights_only=False)
+        if ck.get("arch") != "ensemble":
+            raise ValueError(f"arch {ck.get('arch')!r}")
+        models = []
+        for m in ck["members"]:
+            model = AVNav(AVNavConfig(**{k: _tuples(v) for k, v in m["config"].items()}))
+            model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in m["state"].items()})
+            models.append(model)
+    except Exception as exc:  # a damaged or foreign file: one clear line
+        raise ConfigError(f"{p} is not a Sonicverse policy ensemble ({type(exc).__name__}: {exc})") from None
+    ens = PolicyEnsemble(models)
+    ens.eval()
+    return ens, ck.get("meta", {})
+
+
+def _file_arch(path) -> str | None:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False).get("arch")
+    except Exception:
+        return None  # read_checkpoint names the problem
+
+
+def load_policy(path, arch: str | None = None):
+    """(model, meta) of any learned policy's checkpoint (``arch``: the one expected, else whichever it holds); an
+    ensemble of ``av-nav`` policies (:func:`write_ensemble`) loads where ``av-nav`` is expected."""
+    from sonicverse_core.errors import ConfigError
+
+    if _file_arch(path) == "ensemble" and arch in (None, "av-nav"):
+        return load_ensemble(path)
     if arch is None:
-        try:
-            arch = torch.load(path, map_location="cpu", weights_only=False).get("arch")
-        except Exception:
-            arch = "av-nav"  # read_checkpoint names the problem
+        arch = _file_arch(path)
         arch = arch if arch in POLICIES else "av-nav"
     if arch == "av-nav":
         return load(path)

@@ -173,6 +173,9 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         from agents.learned import check_trained_on
 
         check_trained_on(cfg.init, meta, cfg.task)
+        if getattr(model, "arch", None) == "ensemble":
+            raise ConfigError(f"{cfg.init} is an ensemble of policies (train --ensemble): it acts, it does not train; "
+                              "fine-tune one of its members")
         if hasattr(model, "stage"):
             model.stage(2)  # SAVi's second stage: the full memory, the encoders frozen
         if getattr(model.cfg, "map_shape", ()):

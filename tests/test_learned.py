@@ -592,6 +592,64 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
                   tmp_path / "p")
 
 
+def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli):
+    """`train --ensemble A.pt B.pt`: one float16 file; where av-nav is expected it loads as a PolicyEnsemble whose
+    action distribution is the mean of its members' (each with its own GRU state, stepping as it would alone), and
+    the harness plays it. Members of another configuration or task, a single member, an existing file: one line,
+    exit 2."""
+    from agents.imitation import _policy_step
+    from agents.models import PolicyEnsemble, load_policy, primitives_for
+    from app.tasks.run import run_task
+
+    cfg = AVNavConfig(primitives=primitives_for(2))
+    paths = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        paths.append(tmp_path / f"m{seed}.pt")
+        save(AVNav(cfg).eval(), paths[-1], {"config": {"task": "AudioGoal", "seed": seed}, "iteration": 3})
+    r = cli("train", "--task", "AudioGoal", "--ensemble", *map(str, paths), "--out", str(tmp_path / "e"), "--json")
+    res = json.loads(r.stdout)
+    ens, meta = load_policy(res["checkpoint"], "av-nav")
+    assert isinstance(ens, PolicyEnsemble) and [m["seed"] for m in meta["members"]] == [0, 1]
+    assert meta["config"]["task"] == "AudioGoal" and res["bytes"] < 0.6 * sum(p.stat().st_size for p in paths)
+    d, s, p = _batch(4, 2, cfg)
+    starts = torch.zeros(4, 2)
+    starts[0] = 1
+    alone = [load(q)[0] for q in paths]
+    with torch.no_grad():
+        out, _, h = ens(d, s, p, ens.initial_state(2), starts)
+        outs = [m(d, s, p, m.initial_state(2), starts) for m in ens.members]
+        full = [m(d, s, p, m.initial_state(2), starts)[0] for m in alone]
+    mean = torch.stack([torch.softmax(o[0], -1) for o in outs]).mean(0)
+    assert torch.allclose(torch.softmax(out, -1), mean, atol=1e-6)
+    assert h.shape == (2, 1, 2, cfg.hidden) and all(torch.equal(h[i], outs[i][2]) for i in range(2))
+    # float16 weights: the distribution within 0.01 of the float32 members' mean
+    assert (torch.softmax(out, -1) - torch.stack([torch.softmax(o, -1) for o in full]).mean(0)).abs().max() < 0.01
+    obs = {"depth": np.full((64, 64, 1), 2.0, np.float32), "spectrogram": np.ones(cfg.spec_shape, np.float32),
+           "pose": np.zeros(4, np.float32)}
+    a, h1 = _policy_step(ens, obs, ens.initial_state(1), True, np.random.default_rng(0))
+    assert any(np.allclose(a, t) for t in cfg.primitives) and h1.shape == (2, 1, 1, cfg.hidden)
+    res_run = run_task("audio-goal", "av-nav", 1, seed=0, checkpoint=res["checkpoint"], env_kwargs={"max_steps": 8})
+    assert res_run["episodes"] == 1
+    other = tmp_path / "other.pt"
+    save(AVNav(AVNavConfig(primitives=primitives_for(3))), other, {"config": {"task": "AudioGoal"}})
+    sf = tmp_path / "sf.pt"
+    save(AVNav(cfg), sf, {"config": {"task": "SpeakerFollowing"}})
+    for args, msg in (((paths[0], other), "share one configuration"), ((paths[0],), "two policies or more"),
+                      ((paths[0], sf), "trained on one task"), ((paths[0], paths[1]), "exists")):
+        out_dir = tmp_path / ("e" if msg == "exists" else msg.replace(" ", "_"))
+        r = cli("train", "--task", "AudioGoal", "--ensemble", *map(str, args), "--out", str(out_dir), check_rc=2)
+        assert msg in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = cli("train", "--task", "SpeakerFollowing", "--ensemble", *map(str, paths), "--out", str(tmp_path / "t"),
+            check_rc=2)
+    assert "not SpeakerFollowing" in r.stderr and not (tmp_path / "t" / "best.pt").exists()
+    from agents.ppo import PPOConfig, train as train_ppo
+    from sonicverse_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="ensemble"):
+        train_ppo(PPOConfig(task="AudioGoal", frames=16, envs=1, init=res["checkpoint"]), tmp_path / "p")
+
+
 def test_an_evaluations_episodes_depend_on_the_seed_and_index_alone(tmp_path):
     """README (AudioGoal over 200 episodes): episode i of a seeded evaluation is the same whatever the number of
     episodes, and a rerun repeats it step for step (the agent's Generator is seeded per episode too)."""

@@ -42,6 +42,8 @@ def cmd_train(a) -> int:
 
     from sonicverse_core.errors import ConfigError
 
+    if a.ensemble:
+        return _train_ensemble(a)
     if a.teacher != "oracle" and not (a.map and a.recipe == "dagger" and a.task == "SpeakerFollowing"):
         raise ConfigError("--teacher scripted is for --recipe dagger --map --task SpeakerFollowing")
     if a.map and (a.recipe != "dagger" or a.agent != "av-nav"
@@ -120,6 +122,24 @@ def cmd_bench_camera(a) -> int:
     from app.bench.camera import bench_camera
 
     print(json.dumps(bench_camera(a.scene, a.size, a.frames, a.seed)))
+    return 0
+
+
+def _train_ensemble(a) -> int:
+    """``train --ensemble A.pt B.pt ...``: no training; the checkpoints as one policy in --out/best.pt."""
+    from pathlib import Path
+
+    from agents.models import write_ensemble
+    from sonicverse_core.errors import ConfigError
+
+    if a.resume or a.init or a.recipe != "dagger" or a.agent != "av-nav":
+        raise ConfigError("--ensemble joins trained av-nav checkpoints: no --resume, --init, --recipe ppo or --agent")
+    out = Path(a.out) / "best.pt"
+    if out.exists():
+        raise ConfigError(f"{out} exists: give another --out")
+    meta = write_ensemble(a.ensemble, out, half=True, task=a.task)
+    res = {"checkpoint": str(out), "members": meta["members"], "task": a.task, "bytes": out.stat().st_size}
+    print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
 
 
@@ -368,6 +388,10 @@ def add_task_commands(sub, bench_sub) -> None:
     t.add_argument("--teacher", choices=("oracle", "scripted"), default="oracle",
                    help="imitation: whose actions the policy learns, the privileged oracle's or (--map on "
                    "SpeakerFollowing) the scripted follower's, which sees what the map shows (default: %(default)s)")
+    t.add_argument("--ensemble", nargs="+", type=A.in_file(".pt"), metavar="PT", default=None,
+                   help="train nothing: join these av-nav checkpoints of --task (one configuration, e.g. the same "
+                   "recipe from several --seed) into one policy acting on the mean of their action distributions, "
+                   "written to --out/best.pt as float16")
     t.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
     t.add_argument("--out", default="out/train", type=A.out_dir, help="output folder (default: %(default)s)")
     t.add_argument("--resume", action="store_true", help="go on from --out's model.pt (to more --iterations)")
