@@ -255,3 +255,26 @@ class EgoMap(MapFollower):
                 ok = (i >= 0) & (i < self.SIZE) & (j >= 0) & (j < self.SIZE)
                 img[3, i[ok], j[ok]] = 255
         return img
+
+
+def floor_safe(table: np.ndarray, grid, pose, robot, horizon_s: float) -> np.ndarray:
+    """Which rows of ``table`` (normalised wheel velocities, left and right, one row per discrete action) keep the
+    robot on ``grid``'s navigable floor when held for ``horizon_s`` seconds from ``pose`` (x, y, yaw degrees on the
+    grid's frame), integrated as the world integrates a step (:func:`sonicverse_core.world.robot.integrate`, whose
+    rotation is never blocked). ``grid`` is what the robot may know (the task's floor plan); a person is not on it."""
+    from sonicverse_core.world.robot import integrate
+
+    nav = grid.navigable
+    c, ox, oy = grid.config.cell, float(grid.origin[0]), float(grid.origin[1])
+    rows, cols = nav.shape
+
+    def free(x: float, y: float) -> bool:
+        col, row = math.floor((x - ox) / c), math.floor((y - oy) / c)
+        return 0 <= row < rows and 0 <= col < cols and bool(nav[row, col])
+
+    p = np.asarray(pose, float)
+    ok = np.ones(len(table), bool)
+    for i, wheels in enumerate(np.asarray(table, float)[:, :2]):
+        if wheels[0] + wheels[1] > 0:  # only moving forward can bump (no row drives backwards)
+            ok[i] = not integrate(robot, p, wheels, horizon_s, free)[1]
+    return ok

@@ -256,21 +256,26 @@ def _map_input(mp, device=None):
     return x.float() * (1.0 / 255)
 
 
-def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = None, egomap=None):
+def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = None, egomap=None, allowed=None):
     """(action, next hidden state): the mean / most likely action, or with ``rng`` (discrete head) one drawn from
     the policy's distribution; a stop (tasks that have one) only when it is the most likely action, since a stop drawn
-    by chance would end the episode. ``egomap``: the (C, H, W) uint8 map of a policy that reads one."""
+    by chance would end the episode. ``egomap``: the (C, H, W) uint8 map of a policy that reads one. ``allowed``
+    (discrete head): a bool per action; the others' probabilities are set to 0 before drawing or taking the most
+    likely one, unless that leaves none."""
     dev = model.device
     kw = {} if egomap is None else {"egomap": _map_input(torch.from_numpy(np.ascontiguousarray(egomap))[None, None],
                                                          dev)}
     with torch.no_grad(), acting_threads():
         out, _, h = model(*_inputs(*_stack([obs]), dev), h, torch.tensor([[start]], device=dev), **kw)
-    if rng is not None and model.discrete:
+    if model.discrete and (rng is not None or allowed is not None):
         prob = torch.softmax(out[0, 0].double(), -1).cpu().numpy()
         table = model.table.cpu().numpy()
+        if allowed is not None and np.any(allowed & (prob > 0)):
+            prob = np.where(allowed, prob, 0.0)
+        best = int(np.argmax(prob))
         stop = table[:, 2] > 0 if table.shape[1] == 3 else np.zeros(len(prob), bool)
-        if stop[int(np.argmax(prob))]:  # the stop ends the episode: taken only when it is the most likely action
-            return table[int(np.argmax(prob))], h
+        if rng is None or stop[best]:  # the stop ends the episode: taken only when it is the most likely action
+            return table[best], h
         prob = np.where(stop, 0.0, prob)
         return table[int(rng.choice(len(prob), p=prob / prob.sum()))], h
     return model.act(out)[0, 0].cpu().numpy(), h

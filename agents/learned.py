@@ -5,7 +5,13 @@ evaluations do) or the continuous head's mean. ``av-nav-greedy`` takes the most 
 AudioGoal test episodes of the README it reaches 20% SR where drawing reaches 46.7%, because a greedy policy that
 meets furniture repeats the same choice and stays stuck. A checkpoint may be an ensemble of av-nav policies
 (``sonicverse train --ensemble``; :class:`agents.models.PolicyEnsemble`): the action is then drawn from the mean of
-their distributions, each member carrying its own GRU state."""
+their distributions, each member carrying its own GRU state.
+
+A policy with a map input (the speaker follower) acts through a shield: the actions that, held for ``shield_s``
+(0.3 s), would drive the robot off the floor plan's navigable floor (walls, furniture: what the scripted follower
+plans on) are removed from its distribution before drawing, unless that leaves none. On the README's 30 test
+episodes it took the follower from 50 collisions an episode to 2.8 and its catch success from 76.7% to 96.7%; its
+time in band stayed where it was (0.720 against 0.734, paired -0.014 [-0.066, +0.038])."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -34,6 +40,9 @@ def check_trained_on(path, meta: dict, task: str) -> None:
 class AVNavAgent(Agent):
     name = "av-nav"
     arch = "av-nav"  # the checkpoint's architecture
+    # s: a policy that reads the task's floor plan (``--map``) never draws an action that, held this long, would
+    # drive it off the plan's navigable floor (:func:`agents.following.floor_safe`); None: no such check
+    shield_s: float | None = 0.3
 
     def __init__(self, rng: np.random.Generator | None = None, checkpoint=None, task: str = "AudioGoal"):
         super().__init__(rng)
@@ -64,7 +73,13 @@ class AVNavAgent(Agent):
         from agents.imitation import _policy_step
 
         mp = self.ego.observe(obs, info) if self.ego is not None else None
-        a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None, mp)
+        allowed = None
+        if self.shield_s and self.ego is not None and self.model.discrete:
+            from agents.following import floor_safe
+
+            allowed = floor_safe(self.model.table.cpu().numpy(), self.ego.map.grid, self.ego.me.pose, self.robot,
+                                 self.shield_s)
+        a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None, mp, allowed)
         self.start = False
         return np.clip(a, -1, 1).astype(np.float32)
 

@@ -390,6 +390,45 @@ def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
     assert all(a[2] < 0 for a in drawn) and len({tuple(a) for a in drawn}) > 3  # drawn, never the stop
 
 
+def test_the_floor_shield_removes_the_actions_that_would_leave_the_floor_and_only_those():
+    """`agents.following.floor_safe` on a 6 x 4 m room (navigable to 0.205 m of its walls, the robot's radius and
+    half a cell): 0.1 m short of that edge, facing it, the forward actions whose 0.3 s reach crosses it are removed
+    and the slow ones and the turns on the spot stay; facing away, every action stays. `_policy_step` draws only
+    allowed actions, and with none allowed acts as if unshielded."""
+    from agents.following import floor_safe
+    from agents.imitation import _policy_step
+    from agents.models import primitives_for
+    from sonicverse_core.geometry.navgrid import NavGrid
+    from sonicverse_core.scene import load_scene
+    from sonicverse_core.world import RobotConfig
+
+    grid, robot = NavGrid(load_scene("shoebox:6x4x3")), RobotConfig()
+    table = np.array(primitives_for(2))
+    edge = 6.0 - 0.205
+    ok = floor_safe(table, grid, (edge - 0.1, 2.0, 0.0), robot, 0.3)
+    reach = 0.5 * (table[:, 0] + table[:, 1]) * robot.max_speed * 0.3  # straight-line reach; veers reach less far
+    assert not ok[0] and not ok[1]  # full speed (0.21 m) and half (0.105 m) would cross the edge
+    assert ok[2] and all(ok[reach <= 0])  # a quarter (0.05 m), the turns on the spot, standing still stay
+    assert ok[reach < 0.09].all() and not ok[reach > 0.11].any()
+    assert floor_safe(table, grid, (edge - 0.1, 2.0, 180.0), robot, 0.3).all()
+    assert not floor_safe(table, grid, (edge - 0.1, 2.0, 0.0), robot, 1.0)[2]  # a quarter for 1 s: 0.175 m
+
+    cfg = AVNavConfig(primitives=primitives_for(2))
+    m = AVNav(cfg).eval()
+    with torch.no_grad():
+        m.actor.weight.zero_()
+        m.actor.bias.fill_(0.0)
+        m.actor.bias[0] = 5.0  # full speed ahead: by far the most likely
+    obs = {"depth": np.full((64, 64, 1), 2.0, np.float32), "spectrogram": np.ones(cfg.spec_shape, np.float32),
+           "pose": np.zeros(4, np.float32)}
+    rng = np.random.default_rng(0)
+    drawn = {tuple(_policy_step(m, obs, m.initial_state(1), True, rng, allowed=ok)[0]) for _ in range(100)}
+    assert drawn <= {tuple(a) for a in table[ok]} and len(drawn) > 3
+    assert tuple(_policy_step(m, obs, m.initial_state(1), True, None, allowed=ok)[0]) in {tuple(a) for a in table[ok]}
+    none = np.zeros(len(table), bool)
+    assert tuple(_policy_step(m, obs, m.initial_state(1), True, None, allowed=none)[0]) == tuple(table[0])
+
+
 def test_ppo_critic_warmup_leaves_the_policy_as_imitation_left_it(tmp_path, made):
     from agents.learned import default_checkpoint
     from agents.ppo import PPOConfig, train as train_ppo
@@ -407,7 +446,7 @@ def test_ppo_critic_warmup_leaves_the_policy_as_imitation_left_it(tmp_path, made
     assert all(r["kl_init"] == 0.0 for r in meta["log"])
 
 
-def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_path):
+def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_path, monkeypatch):
     """`task run speaker-following --agent av-nav` builds the env with the sensors the checkpoint was trained on;
     in the VR loop the robot's agent gets the same observations (depth at its size, the spectrogram of its ears)."""
     from agents.learned import default_checkpoint
@@ -427,9 +466,15 @@ def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_
     # 0.734 against 0.088)
     from app.tasks.run import run_task
 
-    learned = run_task("speaker-following", "av-nav", 1, seed=0, first=1)["time_in_band"]["mean"]
+    res = run_task("speaker-following", "av-nav", 1, seed=0, first=1)
+    learned = res["time_in_band"]["mean"]
     rnd = run_task("speaker-following", "random", 1, seed=0, first=1)["time_in_band"]["mean"]
     assert learned > rnd + 0.1, (learned, rnd)
+    # the floor shield (AVNavAgent.shield_s): on this episode the policy bumps 5 times without it, never with it
+    assert res["collisions"]["mean"] == 0
+    monkeypatch.setattr("agents.learned.AVNavAgent.shield_s", None)
+    assert run_task("speaker-following", "av-nav", 1, seed=0, first=1)["collisions"]["mean"] > 0
+    monkeypatch.undo()
     with pytest.raises(ConfigError, match="--checkpoint is for learned agents"):
         run_task("speaker-following", "oracle", 1, checkpoint=default_checkpoint("av-nav", "SpeakerFollowing"))
     task = FollowMe(agent="av-nav", seed=0)
