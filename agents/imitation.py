@@ -2,7 +2,9 @@
 recipe (behaviour cloning then PPO, as PIRLNav and SPOC do): far fewer frames than PPO from scratch.
 
 Each iteration drives ``frames`` steps in train homes with a mix of the expert and the policy (the expert acts with
-probability ``beta``, which decays to ``beta_min``; collection episodes end after ``rollout_steps``), labels every
+probability ``beta``, which decays to ``beta_min``; the policy takes its most likely action, or with ``learner``
+"drawn" draws it as it plays, through the floor shield where it reads the floor plan; collection episodes end after
+``rollout_steps``), labels every
 visited state with the expert's action (the navigation oracle replans whenever the robot strays from its path; on
 speaker following the expert is the oracle follower, :class:`FollowExpert`; where the task has a stop, a stop of the
 policy's where the expert drives on is replaced by the expert's action, so that collection reaches the goal and its
@@ -64,6 +66,21 @@ def ego_for(model):
     return None if kind is None else map_class(kind)()
 
 
+SHIELD_S = 0.3  # s: the floor shield's horizon (agents.learned.AVNavAgent.shield_s)
+
+
+def floor_shield(model, ego, horizon_s: float | None = SHIELD_S):
+    """The actions a discrete policy that reads the task's floor plan (:class:`agents.following.EgoMap`) may take
+    now: those that, held for ``horizon_s``, keep it on the plan's navigable floor
+    (:func:`agents.following.floor_safe`); None (no restriction) for other policies or without a horizon. Call it
+    after ``ego.observe`` (which moves the map's robot to this step's pose)."""
+    from agents.following import EgoMap, floor_safe
+
+    if not horizon_s or not model.discrete or not isinstance(ego, EgoMap):
+        return None
+    return floor_safe(model.table.cpu().numpy(), ego.map.grid, ego.me.pose, ego.robot, horizon_s)
+
+
 @dataclass
 class ImitationConfig:
     task: str = "AudioGoal"
@@ -93,6 +110,8 @@ class ImitationConfig:
     teacher: str = "oracle"  # whose actions are the labels: the privileged "oracle", or (speaker following with
     # the map) the "scripted" follower, which acts on what the map shows, so its labels do not ask for what the
     # policy cannot know (the imitation gap); the goal heads still learn where the person is from the oracle
+    learner: str = "greedy"  # how the learner acts when DAgger lets it: its most likely action ("greedy"), or
+    # "drawn" as it plays (drawn from its distribution, through the floor shield where it reads the floor plan)
     rollout_steps: int = 0  # a collection episode ends here (a stuck learner's 500 steps teach little); 0: the
     # task's own (200 on navigation, 600 on speaker following, whose episodes run 20-60 s to the catch at the end)
 
@@ -370,7 +389,8 @@ def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, ba
 
 def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0) -> dict:
     """The policy alone over ``episodes`` of ``split`` homes, acting as the ``av-nav`` agent does (actions drawn
-    from the discrete head with a Generator seeded per episode; the continuous head's mean): the means of the task's
+    from the discrete head with a Generator seeded per episode, through the floor shield where the policy reads the
+    floor plan; the continuous head's mean): the means of the task's
     validation scores (``VAL_KEYS``: SR and SPL on navigation; on speaker following ``sr`` is the catch success and
     ``band`` the time in band)."""
     from sonicverse_core.tasks import make_env
@@ -388,7 +408,7 @@ def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int =
                 ego.reset(env, obs, info)
             while not done:
                 mp = ego.observe(obs, info) if ego is not None else None
-                a, h = _policy_step(model, obs, h, start, draw, mp)
+                a, h = _policy_step(model, obs, h, start, draw, mp, floor_shield(model, ego))
                 start = False
                 obs, _, term, trunc, info = env.step(a.astype(np.float32))
                 done = term or trunc
@@ -434,6 +454,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
         raise ConfigError(f"agent must be av-nav, savi or multitask, got {cfg.agent!r}")
     if cfg.egomap and (cfg.agent != "av-nav" or cfg.task not in MAP_TASKS):
         raise ConfigError(f"--map is for av-nav on {', '.join(MAP_TASKS)}")
+    if cfg.learner not in ("greedy", "drawn"):
+        raise ConfigError(f"learner must be greedy or drawn, got {cfg.learner!r}")
     if cfg.teacher not in ("oracle", "scripted"):
         raise ConfigError(f"teacher must be oracle or scripted, got {cfg.teacher!r}")
     if cfg.teacher == "scripted" and not (cfg.egomap and MAP_TASKS.get(cfg.task) == "follow"):
@@ -511,7 +533,10 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
                     mp = ego.observe(obs, info) if ego is not None else None
                     if cfg.teacher == "scripted":
                         a_exp = np.asarray(ego.action, np.float32)
-                    a_pol, h = _policy_step(model, obs, h, start, egomap=mp)
+                    if cfg.learner == "drawn":
+                        a_pol, h = _policy_step(model, obs, h, start, rng, mp, floor_shield(model, ego))
+                    else:
+                        a_pol, h = _policy_step(model, obs, h, start, egomap=mp)
                     if mp is not None:
                         ep["mp"].append(mp.copy())
                     d, s, p = _quantise(obs)

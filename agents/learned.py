@@ -42,7 +42,7 @@ class AVNavAgent(Agent):
     arch = "av-nav"  # the checkpoint's architecture
     # s: a policy that reads the task's floor plan (``--map``) never draws an action that, held this long, would
     # drive it off the plan's navigable floor (:func:`agents.following.floor_safe`); None: no such check
-    shield_s: float | None = 0.3
+    shield_s: float | None = 0.3  # agents.imitation.SHIELD_S
 
     def __init__(self, rng: np.random.Generator | None = None, checkpoint=None, task: str = "AudioGoal"):
         super().__init__(rng)
@@ -70,16 +70,11 @@ class AVNavAgent(Agent):
             self.ego.reset(env, obs, info)
 
     def act(self, obs, info) -> np.ndarray:
-        from agents.imitation import _policy_step
+        from agents.imitation import _policy_step, floor_shield
 
         mp = self.ego.observe(obs, info) if self.ego is not None else None
-        allowed = None
-        if self.shield_s and self.ego is not None and self.model.discrete:
-            from agents.following import floor_safe
-
-            allowed = floor_safe(self.model.table.cpu().numpy(), self.ego.map.grid, self.ego.me.pose, self.robot,
-                                 self.shield_s)
-        a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None, mp, allowed)
+        a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None, mp,
+                                 floor_shield(self.model, self.ego, self.shield_s))
         self.start = False
         return np.clip(a, -1, 1).astype(np.float32)
 

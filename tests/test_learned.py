@@ -604,23 +604,29 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     it reads the map the robot draws (NavEgoMap). Elsewhere `--map`, and `--teacher scripted` without the
     follower's map, are one line and exit 2, and PPO does not take such a policy."""
     from agents.following import EgoMap
-    from agents.imitation import SENSORS, ego_for, sensors_for
+    from agents.imitation import SENSORS, ego_for, floor_shield, sensors_for
     from agents.navmap import NavEgoMap
     from agents.ppo import PPOConfig, train as train_ppo
     from app.tasks.run import run_task
     from sonicverse_core.errors import ConfigError
 
     cfg = ImitationConfig(task="SpeakerFollowing", frames=80, iterations=1, val_episodes=0, epochs=1, seed=3,
-                          rollout_steps=40, egomap=True, teacher="scripted")
+                          rollout_steps=40, egomap=True, teacher="scripted", learner="drawn")
     train(cfg, tmp_path / "m")
     model, meta = load(tmp_path / "m" / "model.pt")
     assert model.cfg.map_shape == (EgoMap.CHANNELS, EgoMap.SIZE, EgoMap.SIZE) and meta["config"]["egomap"]
     assert model.cfg.map_kind == "follow" and meta["config"]["teacher"] == "scripted"
+    # navigation: the map the robot draws; the learner drawing its actions in collection (`--learner drawn`) meets
+    # no floor shield there (no floor plan), on the follower's map it does
     train(ImitationConfig(task="AudioGoal", frames=40, iterations=1, val_episodes=0, epochs=1, seed=3,
-                          rollout_steps=40, egomap=True), tmp_path / "n")  # navigation: the map the robot draws
-    nav, _ = load(tmp_path / "n" / "model.pt")
+                          rollout_steps=40, egomap=True, learner="drawn", beta0=0.0, beta_min=0.0), tmp_path / "n")
+    nav, nmeta = load(tmp_path / "n" / "model.pt")
     assert nav.cfg.map_kind == "nav" and nav.cfg.map_shape == (NavEgoMap.CHANNELS, NavEgoMap.SIZE, NavEgoMap.SIZE)
     assert type(ego_for(nav)) is NavEgoMap and sensors_for(nav) == SENSORS  # no raw audio block needed
+    assert nmeta["config"]["learner"] == "drawn" and floor_shield(nav, ego_for(nav)) is None
+    res = run_task("audio-goal", "av-nav", 1, seed=0, checkpoint=str(tmp_path / "n" / "model.pt"),
+                   env_kwargs={"max_steps": 20})  # the av-nav agent plays a navigator with a map, unshielded
+    assert res["episodes"] == 1
     with pytest.raises(ValueError, match="egomap"):  # a map policy never acts without its map
         model(*_batch(1, 1, model.cfg), model.initial_state(1), torch.ones(1, 1))
     res = run_task("speaker-following", "av-nav", 1, seed=0, checkpoint=str(tmp_path / "m" / "model.pt"),
@@ -632,6 +638,9 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     r = cli("train", "--task", "AudioGoal", "--map", "--teacher", "scripted", "--frames", "100", "--out",
             str(tmp_path / "y"), check_rc=2)
     assert "--teacher scripted is for" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = cli("train", "--recipe", "ppo", "--learner", "drawn", "--frames", "100", "--out", str(tmp_path / "z"),
+            check_rc=2)
+    assert "--learner is for" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     with pytest.raises(ConfigError, match="egocentric map"):
         train_ppo(PPOConfig(task="SpeakerFollowing", frames=16, envs=1, init=str(tmp_path / "m" / "model.pt")),
                   tmp_path / "p")

@@ -46,6 +46,8 @@ def cmd_train(a) -> int:
         return _train_ensemble(a)
     if a.teacher != "oracle" and not (a.map and a.recipe == "dagger" and a.task == "SpeakerFollowing"):
         raise ConfigError("--teacher scripted is for --recipe dagger --map --task SpeakerFollowing")
+    if a.learner != "greedy" and a.recipe != "dagger":
+        raise ConfigError("--learner is for --recipe dagger (PPO's learner always draws its actions)")
     if a.map and (a.recipe != "dagger" or a.agent != "av-nav"
                   or a.task not in ("SpeakerFollowing", "AudioGoal", "SemanticAudioNav")):
         raise ConfigError("--map is for --recipe dagger --agent av-nav --task SpeakerFollowing|AudioGoal|"
@@ -97,7 +99,7 @@ def cmd_train(a) -> int:
         cfg = ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
                               size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
                               aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
-                              homes=a.homes or 0, egomap=a.map, teacher=a.teacher)
+                              homes=a.homes or 0, egomap=a.map, teacher=a.teacher, learner=a.learner)
         res = train(cfg, a.out, progress=progress, resume=a.resume)
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
@@ -388,6 +390,9 @@ def add_task_commands(sub, bench_sub) -> None:
     t.add_argument("--teacher", choices=("oracle", "scripted"), default="oracle",
                    help="imitation: whose actions the policy learns, the privileged oracle's or (--map on "
                    "SpeakerFollowing) the scripted follower's, which sees what the map shows (default: %(default)s)")
+    t.add_argument("--learner", choices=("greedy", "drawn"), default="greedy",
+                   help="imitation: how the learner acts when DAgger lets it, its most likely action or drawn as it "
+                   "plays (through the floor shield where it reads the floor plan) (default: %(default)s)")
     t.add_argument("--ensemble", nargs="+", type=A.in_file(".pt"), metavar="PT", default=None,
                    help="train nothing: join these av-nav checkpoints of --task (one configuration, e.g. the same "
                    "recipe from several --seed) into one policy acting on the mean of their action distributions, "
