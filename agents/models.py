@@ -367,8 +367,9 @@ def load_ensemble(path) -> tuple[PolicyEnsemble, dict]:
 
 
 def _file_arch(path) -> str | None:
+    """The checkpoint's "arch", read without loading its tensors (memory-mapped)."""
     try:
-        return torch.load(path, map_location="cpu", weights_only=False).get("arch")
+        return torch.load(path, map_location="cpu", weights_only=False, mmap=True).get("arch")
     except Exception:
         return None  # read_checkpoint names the problem
 

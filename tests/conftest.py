@@ -102,3 +102,17 @@ def private_jack(monkeypatch, request):
     yield make
     for s in servers:
         s.stop()
+
+
+@pytest.fixture
+def policy_batch():
+    """``policy_batch(T, B, cfg)``: seeded random depth, spectrogram and pose inputs for a policy of ``cfg``,
+    shaped (T, B, ...)."""
+    import torch
+
+    def make(T, B, cfg):
+        g = torch.Generator().manual_seed(0)
+        return (torch.rand(T, B, *cfg.depth_hw, 1, generator=g) * 10,
+                torch.rand(T, B, *cfg.spec_shape, generator=g) * 5, torch.rand(T, B, cfg.pose_dim, generator=g))
+
+    return make
