@@ -237,6 +237,10 @@ def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli
     r = cli("train", "--task", "SpeakerFollowing", "--ensemble", *map(str, paths), "--out", str(tmp_path / "t"),
             check_rc=2)
     assert "not SpeakerFollowing" in r.stderr and not (tmp_path / "t" / "best.pt").exists()
+    for extra in (["--map"], ["--learner", "drawn"], ["--resume"]):  # training flags: refused, not ignored
+        r = cli("train", "--task", "AudioGoal", "--ensemble", *map(str, paths), *extra, "--out", str(tmp_path / "u"),
+                check_rc=2)
+        assert "as they are" in r.stderr and not (tmp_path / "u" / "best.pt").exists()
     from agents.ppo import PPOConfig, train as train_ppo
     from sonicverse_core.errors import ConfigError
 

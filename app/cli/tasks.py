@@ -134,8 +134,10 @@ def _train_ensemble(a) -> int:
     from agents.models import write_ensemble
     from sonicverse_core.errors import ConfigError
 
-    if a.resume or a.init or a.recipe != "dagger" or a.agent != "av-nav":
-        raise ConfigError("--ensemble joins trained av-nav checkpoints: no --resume, --init, --recipe ppo or --agent")
+    if (a.resume or a.init or a.recipe != "dagger" or a.agent != "av-nav" or a.map or a.teacher != "oracle"
+            or a.learner != "greedy"):
+        raise ConfigError("--ensemble joins trained av-nav checkpoints as they are: no --resume, --init, --recipe "
+                          "ppo, --agent, --map, --teacher or --learner")
     out = Path(a.out) / "best.pt"
     if out.exists():
         raise ConfigError(f"{out} exists: give another --out")
