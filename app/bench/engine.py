@@ -46,8 +46,9 @@ def bench_rays(spec: str = "builtin:apartment", n_rays: int = 200_000, n_referen
     }
 
 
-def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = True):
-    """A renderer over ``spec`` with n sound-bank sources on random navigable points and one listener."""
+def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = True, listener_room: str | None = None):
+    """A renderer over ``spec`` with n sound-bank sources on random navigable points and one listener (in room
+    ``listener_room`` when given: the first navigable point drawn there)."""
     from assets_manifest import soundbank
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer
@@ -55,6 +56,11 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = Tru
     from sonicverse_core.scene.spec import load_scene
 
     scene = load_scene(spec)
+    if listener_room is not None and all(r.name != listener_room for r in scene.rooms):
+        from sonicverse_core.errors import ConfigError
+
+        raise ConfigError(f"no room '{listener_room}' in {spec}; its rooms: "
+                          f"{', '.join(r.name for r in scene.rooms) or 'none'}")
     probes = scene_probes(scene, BakeConfig(per_room=per_room)) if cfg.late_reverb or cfg.early_reflections else None
     r = AcousticRenderer(scene, cfg, probes=probes)
     rng = np.random.default_rng(seed)
@@ -64,26 +70,31 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = Tru
         cat = soundbank.CATEGORIES[i % len(soundbank.CATEGORIES)]
         r.add_source(soundbank.sound(cat, i % 3), np.r_[pts[i, :2], 1.0], sample_rate=soundbank.SAMPLE_RATE,
                      gain=0.1)
-    r.add_listener(np.r_[pts[-1, :2], 1.5], 0.0)
+    # the listener: the last point drawn, or a point drawn after the sources' in its room (same sources either way)
+    at = pts[-1, :2] if listener_room is None else grid.sample(rng, 1, room=listener_room)[0, :2]
+    r.add_listener(np.r_[at, 1.5], 0.0)
     return r
 
 
 def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:apartment", seed: int = 0,
                 sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = True,
-                reverb: str = "convolution", er_images: str = "room", er_order: int = 1) -> dict:
+                reverb: str = "convolution", er_images: str = "room", er_order: int = 1, neighbour_tails: int = 1,
+                listener_room: str | None = None) -> dict:
     """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
     reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how
     many room tails it convolves and from how many rooms sources send to it), with the listener walking and turning every block (so every source's direction, delay and
     occlusion changes), against a naive reference in the same run: per source and ear, a full scipy convolution of
     the block with a 0.5 s binaural room impulse response (overlap-add). ``per_room``: probes baked per room and
     the rooms' decays coupled (``BakeConfig.per_room``); ``reverb``: "convolution" or "fdn"; ``er_images``,
-    ``er_order``: the early reflections' geometry and order (``RenderConfig``)."""
+    ``er_order``: the early reflections' geometry and order, ``neighbour_tails``: coupled rooms heard apart besides
+    the slowest mode's (``RenderConfig``); ``listener_room``: the room the listener starts in (default: anywhere)."""
     from scipy.signal import oaconvolve
 
     from sonicverse_core.acoustics.renderer import RenderConfig
 
-    cfg = RenderConfig(sample_rate=sample_rate, block=block, reverb=reverb, er_images=er_images, er_order=er_order)
-    r = _audio_scene(spec, n_sources, seed, cfg, per_room)
+    cfg = RenderConfig(sample_rate=sample_rate, block=block, reverb=reverb, er_images=er_images, er_order=er_order,
+                       neighbour_tails=neighbour_tails)
+    r = _audio_scene(spec, n_sources, seed, cfg, per_room, listener_room)
     lis = r.listeners[0]
     start = lis.position.copy()
     block_s = block / sample_rate
@@ -117,6 +128,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     return {
         "bench": "audio", "scene": spec, "sources": n_sources, "sample_rate": sample_rate, "block": block,
         "per_room": per_room, "reverb": reverb, "er_images": er_images, "er_order": er_order,
+        "neighbour_tails": neighbour_tails, "listener_room": listener_room,
         "blocks": n_blocks, "subsystems": r.subsystems,
         "realtime_fraction": {"median": round(float(np.median(frac)), 4), "p99": round(float(np.percentile(frac, 99)), 4),
                               "max": round(float(frac.max()), 4)},

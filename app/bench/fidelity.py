@@ -22,6 +22,7 @@ from sonicverse_core.acoustics.config import RenderConfig as _RC
 
 BANDS = (250, 500, 1000, 2000, 4000)
 BUILDUP = _RC.tail_buildup  # the renderer's default: the bench's default model is the renderer's
+NEIGHBOURS = _RC.neighbour_tails
 FS = 16_000
 C = 343.0
 
@@ -163,7 +164,7 @@ def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 
 def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
           er_order: int = 1, per_room: bool = True, er_images: str = "room",
           realisation: int = 0, tail_edt: bool = True,
-          tail_buildup: float = BUILDUP) -> tuple[np.ndarray, float, float]:
+          tail_buildup: float = BUILDUP, neighbour_tails: int = NEIGHBOURS) -> tuple[np.ndarray, float, float]:
     """Our mono impulse response; ``realisation`` > 0: another bake seed and another tail noise (0: the defaults)."""
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
@@ -175,7 +176,7 @@ def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
     probes = scene_probes(scene, dataclasses.replace(bake, seed=bake.seed + realisation))
     r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order,
                                              er_images=er_images, tail_seed=realisation, tail_edt=tail_edt,
-                                             tail_buildup=tail_buildup),
+                                             tail_buildup=tail_buildup, neighbour_tails=neighbour_tails),
                           probes=probes)
     t_bake = time.perf_counter() - t0
     x = np.zeros(int(seconds * FS), np.float32)
@@ -196,6 +197,9 @@ SHOEBOXES = {
 L_ROOM = [(0, 0), (6, 0), (6, 3), (3, 3), (3, 6), (0, 6)]
 TWO_ROOMS = [(0, 0), (3.95, 0), (3.95, 1.55), (4.05, 1.55), (4.05, 0), (8, 0), (8, 4), (4.05, 4), (4.05, 2.45),
              (3.95, 2.45), (3.95, 4), (0, 4)]  # the partition as a 0.1 m notch, cut through to the ceiling...
+THREE_ROOMS = [(0, 0), (3.95, 0), (3.95, 1.55), (4.05, 1.55), (4.05, 0), (7.95, 0), (7.95, 1.55), (8.05, 1.55),
+               (8.05, 0), (12, 0), (12, 4), (8.05, 4), (8.05, 2.45), (7.95, 2.45), (7.95, 4), (4.05, 4), (4.05, 2.45),
+               (3.95, 2.45), (3.95, 4), (0, 4)]  # two partitions, two doorways
 
 
 def _cases():
@@ -240,6 +244,22 @@ def _cases():
            (walls, ref.FLOOR, ref.CEILING, floors, lintel, leaf), (1.2, 1.2, 1.2), (2.8, 3.0, 1.5), None)
     yield ("dead room beside a live one, source in the live", spec, TWO_ROOMS, 3.0,
            (walls, ref.FLOOR, ref.CEILING, floors, lintel, leaf), (6.0, 1.0, 1.2), (1.0, 0.6, 1.5), None)
+    # three rooms in a row (session 36): a live west room, a dead hall, an east room less live than the west; the
+    # east room's decay, heard in the hall, is not the slowest mode's (the west's): more than one neighbour apart
+    live = "WoodPanel"
+    room_of = {0: "w", 4: "m", 8: "e", 9: "e", 10: "e", 14: "m", 18: "w", 19: "w"}
+    mat = {"w": ref.WALLS, "m": dead, "e": live}
+    walls = [mat[room_of[k]] if k in room_of else ref.PARTITION for k in range(len(THREE_ROOMS))]
+    strip = lambda x: ([(x - 0.05, 1.55), (x + 0.05, 1.55), (x + 0.05, 2.45), (x - 0.05, 2.45)],  # noqa: E731
+                       ref.FLOOR, ref.CEILING)
+    floors = [([(0, 0), (3.95, 0), (3.95, 4), (0, 4)], ref.FLOOR, ref.CEILING), strip(4.0),
+              ([(4.05, 0), (7.95, 0), (7.95, 4), (4.05, 4)], dead, dead), strip(8.0),
+              ([(8.05, 0), (12, 0), (12, 4), (8.05, 4)], live, live)]
+    lintels = [(x - 0.05, x + 0.05, 1.55, 2.45, ref.DOOR_HEIGHT, ref.PARTITION) for x in (4.0, 8.0)]
+    leaves = [(x + 0.06, x + ref.DOOR_WIDTH, 1.53, 1.57, ref.DOOR_HEIGHT - 0.01, ref.DOOR) for x in (4.0, 8.0)]
+    yield ("dead hall between two live rooms, source in the east", f"builtin:three-rooms?door=open&middle={dead}"
+           f"&east={live}", THREE_ROOMS, 3.0, (walls, ref.FLOOR, ref.CEILING, floors, lintels, leaves),
+           (10.0, 1.2, 1.2), (6.0, 3.0, 1.5), None)
 
 
 PRA_DELAY = 40  # samples: pyroomacoustics centres each arrival in an 81-tap fractional-delay filter
@@ -333,12 +353,14 @@ def _sealed(scattering: str = "stochastic", per_room: bool = True, tail_edt: boo
 def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = False, seed: int = 0,
                    scattering: str = "stochastic", er_order: int = 1, per_room: bool = True,
                    er_images: str = "room", realisations: int = 1, tail_edt: bool = True,
-                   tail_buildup: float = BUILDUP) -> dict:
+                   tail_buildup: float = BUILDUP, neighbour_tails: int = NEIGHBOURS, case: str | None = None) -> dict:
     """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");
     ``er_order``, ``er_images``: our image sources' order and geometry (``RenderConfig``); ``per_room``: probes baked per room, the
     rooms' decays coupled (``BakeConfig.per_room``); ``tail_edt``: our tails fall first at the bake's EDT
     (``RenderConfig.tail_edt``); ``tail_buildup``: the late part of a source in another room builds up with this
-    time constant (s; ``RenderConfig.tail_buildup``). ``realisations`` N > 1: both models run N times (the peer with
+    time constant (s; ``RenderConfig.tail_buildup``); ``neighbour_tails``: coupled rooms heard apart besides the
+    slowest mode's (``RenderConfig.neighbour_tails``); ``case``: only the cases whose name contains it (and no
+    sealed rooms unless it names them). ``realisations`` N > 1: both models run N times (the peer with
     seeds ``seed`` .. ``seed + N - 1``, ours with N bake seeds and tail noises) and each case's parameters are
     those of the mean squared band signals (:func:`room_parameters`): the models' expected responses compared,
     not one draw of each."""
@@ -352,12 +374,19 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     from sonicverse_core.acoustics.renderer import RenderConfig
 
     BakeConfig(scattering=scattering), RenderConfig(er_order=er_order, er_images=er_images,
-                                                    tail_buildup=tail_buildup)  # checked before anything runs
+                                                    tail_buildup=tail_buildup,
+                                                    neighbour_tails=neighbour_tails)  # checked before anything runs
 
     cases, seconds = [], 3.0
     todo = list(_cases())
     if quick:
         todo = todo[1:2] + todo[4:5] + todo[6:7]
+    if case is not None:
+        todo = [c for c in todo if case.lower() in c[0].lower()]
+        if not todo and "sealed" not in case.lower():
+            from sonicverse_core.errors import ConfigError
+
+            raise ConfigError(f"no fidelity case matches '{case}'; the cases: {', '.join(c[0] for c in _cases())}")
     for name, spec, corners, H, mats, src, lis, dims in progress(todo, len(todo), "rooms"):
         walls, floor, ceiling = mats[:3]
         h_peer, h, t_peer, t_bake, t_render = [], [], 0.0, 0.0, 0.0
@@ -366,7 +395,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
             h_peer.append(_pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed + k, *mats[3:]))
             t_peer += (time.perf_counter() - t0) / realisations
             y, tb, tr = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images, realisation=k,
-                              tail_edt=tail_edt, tail_buildup=tail_buildup)
+                              tail_edt=tail_edt, tail_buildup=tail_buildup, neighbour_tails=neighbour_tails)
             h.append(y)
             t_bake, t_render = t_bake + tb / realisations, t_render + tr / realisations
         t_dir = _onset(spec, src, lis)  # both from the shortest open path's time (the peer's filter: 40 samples on)
@@ -379,12 +408,12 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         if dims is not None:
             row["theory"] = _theory_shoebox(dims, walls, floor, ceiling, src, lis)
         cases.append(row)
-    sealed = _sealed(scattering, per_room, tail_edt, tail_buildup)
+    sealed = _sealed(scattering, per_room, tail_edt, tail_buildup) if case is None or "sealed" in case.lower() else None
     met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
            f"{rays} rays, receiver radius 0.5 m, seed {seed})", "realisations": realisations, "sample_rate": FS, "scattering": scattering, "er_order": er_order,
            "er_images": er_images, "per_room": per_room, "tail_edt": tail_edt,
-           "tail_buildup": tail_buildup,
+           "tail_buildup": tail_buildup, "neighbour_tails": neighbour_tails, "case": case,
            "onset": f"the direct sound's time along the shortest open path (the peer's {PRA_DELAY} samples later)",
            "cases": cases,
            "sealed": sealed,

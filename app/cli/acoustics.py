@@ -169,6 +169,12 @@ def add_audio_commands(sub, bench_sub) -> None:
                     help="early reflections off the listener's room's own walls (default) or its probe's box")
     ba.add_argument("--er-order", type=int, choices=(1, 2), default=1,
                     help="early reflections' image-source order (default: %(default)s)")
+    from sonicverse_core.acoustics.config import RenderConfig
+
+    ba.add_argument("--neighbour-tails", type=A.count(0, 4), default=RenderConfig.neighbour_tails, metavar="N",
+                    help="coupled rooms heard apart besides the slowest mode's (default: %(default)s)")
+    ba.add_argument("--listener-room", default=None, metavar="NAME",
+                    help="start the listener in this room of the scene (default: a random navigable point)")
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
@@ -182,10 +188,11 @@ def add_audio_commands(sub, bench_sub) -> None:
     bc.add_argument("--json", action="store_true", help="(always JSON)")
     bc.set_defaults(func=cmd_bench_accuracy)
     bf = bench_sub.add_parser("fidelity", help="sound between rooms: ours vs pyroomacoustics and theory",
-                              description="Shoeboxes, an L-shaped room and two rooms joined by a door (with and "
-                              "without line of sight), rendered by us and by pyroomacoustics' hybrid simulator in the "
-                              "same run; G, T30, EDT, C50, DRR per octave band 250 Hz-4 kHz, errors against the "
-                              "targets, run times; sealed rooms against the mass-law estimate.")
+                              description="Shoeboxes, an L-shaped room, two rooms joined by a door (with and "
+                              "without line of sight) and a dead hall between two live rooms, rendered by us and "
+                              "by pyroomacoustics' hybrid simulator in the same run; G, T30, EDT, C50, DRR per "
+                              "octave band 250 Hz-4 kHz, errors against the targets, run times; sealed rooms "
+                              "against the mass-law estimate.")
     bf.add_argument("--rays", type=A.count(1000, 10_000_000), default=20_000,
                     help="pyroomacoustics' rays (default: %(default)s)")
     bf.add_argument("--plot", type=A.out_file(".png"), help="write a PNG of ours vs the peer per parameter")
@@ -209,6 +216,10 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--tail-buildup", type=A.number(0.0, 0.2), default=RenderConfig.tail_buildup, metavar="S",
                     help="the late part of a source in another room builds up as 1 - e^(-t / S) (0: off; "
                     "default: %(default)s)")
+    bf.add_argument("--neighbour-tails", type=A.count(0, 4), default=RenderConfig.neighbour_tails, metavar="N",
+                    help="coupled rooms heard apart besides the slowest mode's (default: %(default)s)")
+    bf.add_argument("--case", metavar="TEXT", default=None,
+                    help="only the cases whose name contains TEXT (e.g. 'hall', 'shoebox')")
     bf.set_defaults(func=cmd_bench_fidelity)
     bq = bench_sub.add_parser("cues", help="does what the robot hears point where it should go? (AudioGoal homes)",
                               description="At AudioGoal episodes' starts in train homes, facing random ways: the "
@@ -232,7 +243,8 @@ def cmd_bench_audio(a) -> int:
 
     print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block,
                                  per_room=a.per_room, reverb=a.reverb, er_images=a.er_images,
-                                 er_order=a.er_order)))
+                                 er_order=a.er_order, neighbour_tails=a.neighbour_tails,
+                                 listener_room=a.listener_room)))
     return 0
 
 
@@ -247,7 +259,8 @@ def cmd_bench_fidelity(a) -> int:
     from app.bench.fidelity import bench_fidelity
 
     print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
-                                    a.er_images, a.realisations, a.tail_edt == "on", a.tail_buildup)))
+                                    a.er_images, a.realisations, a.tail_edt == "on", a.tail_buildup,
+                                    a.neighbour_tails, a.case)))
     return 0
 
 

@@ -34,6 +34,7 @@ class RenderConfig:
     tail_seed: int = 0  # the convolution tails' noise: another seed, another realisation of the same decays
     tail_edt: bool = True  # the convolution tails fall at first at the probes' baked EDT, then at their RT60
     tail_buildup: float = 0.02  # s: the late part of a source in another room builds up as 1 - e^(-t / this); 0: off
+    neighbour_tails: int = 1  # coupled rooms: the most rooms besides the slowest mode's heard apart (0..4)
 
     def __post_init__(self):
         if not (8000 <= self.sample_rate <= 192000):
@@ -64,5 +65,7 @@ class RenderConfig:
             raise ConfigError(f"tail_seed must be within 0..99999, got {self.tail_seed}")
         if not (0.0 <= self.tail_buildup <= 0.2):
             raise ConfigError(f"tail_buildup must be within 0..0.2 s, got {self.tail_buildup}")
+        if not (0 <= self.neighbour_tails <= 4):
+            raise ConfigError(f"neighbour_tails must be within 0..4, got {self.neighbour_tails}")
         if self.hrtf_taps and not (16 <= self.hrtf_taps <= 4096):
             raise ConfigError("hrtf_taps must be within 16..4096")

@@ -184,6 +184,9 @@ class RoomCoupling:
         * ``slow`` (R_s, R_l, 9): the share of it in the slowest decay mode (0..1);
         * ``slow_rt`` (9,): that mode's RT60 (s), and ``slow_room``: the room it rings in most (at 1 kHz);
         * ``own_rt`` (R, 9): each room's decay alone with its doorways as they are now (open ones absorb);
+        * ``modes_rt`` (R_k, 9), ``modes_share`` (R_k, R_s, R_l, 9), ``modes_room`` (R_k,): every mode, slowest
+          first (the k-th slowest in each band): its RT60, its share of room l's energy for a source in room s, and
+          the room it rings in most (at 1 kHz); mode 0 is ``slow_rt`` / ``slow`` / ``slow_room``;
         * ``open`` (R,): :meth:`open_share`; ``gen``: a number no other split in this process has."""
         if self._split and self._split_version == self.scene.dynamic_version:  # per block: no door moved
             return next(iter(self._split.values()))
@@ -196,6 +199,7 @@ class RoomCoupling:
         c = 343.0
         energy, slow = np.zeros((R, R, nb)), np.zeros((R, R, nb))
         slow_rt, own_rt = np.zeros(nb), np.zeros((R, nb))
+        modes_rt, modes_share = np.zeros((R, nb)), np.zeros((R, R, R, nb))
         sq = np.sqrt(self.V)
         U0 = None
         for b in range(nb):
@@ -206,14 +210,18 @@ class RoomCoupling:
             # E_l(t) after a unit impulse in room s: sum_k U_lk U_sk / sqrt(V_l V_s) exp(-lam_k t)
             w = U[:, None, :] * U[None, :, :] / lam[None, None, :]  # [l, s, k] time integrals
             tot = w.sum(2)
-            slow[:, :, b] = np.clip(np.where(tot > 0, w[:, :, 0] / np.where(tot > 0, tot, 1.0), 0.0), 0.0, 1.0).T
-            slow_rt[b] = 13.8155 / lam[0]
+            share = np.clip(np.where(tot[:, :, None] > 0, w / np.where(tot > 0, tot, 1.0)[:, :, None], 0.0), 0.0, 1.0)
+            modes_share[:, :, :, b] = share.transpose(2, 1, 0)  # [k, s, l]
+            modes_rt[:, b] = 13.8155 / lam
+            slow[:, :, b] = modes_share[0, :, :, b]
+            slow_rt[b] = modes_rt[0, b]
             own_rt[:, b] = 13.8155 / ((c / 4) * np.diag(M) / self.V)
             if b == 5:
-                U0 = U[:, 0]
+                U0 = U
         _SPLITS[0] += 1
         out = {"energy": energy, "slow": slow, "slow_rt": slow_rt, "own_rt": own_rt,
-               "slow_room": int(np.argmax(U0 ** 2)), "open": self.open_share(), "gen": _SPLITS[0]}
+               "slow_room": int(np.argmax(U0[:, 0] ** 2)), "modes_rt": modes_rt, "modes_share": modes_share,
+               "modes_room": np.argmax(U0 ** 2, axis=0), "open": self.open_share(), "gen": _SPLITS[0]}
         self._split = {key: out}
         return out
 

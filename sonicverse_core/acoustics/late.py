@@ -21,6 +21,23 @@ MAX_MIXING_TIME = 0.08  # s: the late tail starts at most this long after the di
 SLOW_SEED = 1000  # the slowest coupled mode's tails: noise independent of the rooms' own
 SEED_STRIDE = 10_007  # RenderConfig.tail_seed's step between realisations (a tail per probe within a stride)
 PORTAL_STEP = 5.0  # degrees: the azimuth table of the neighbouring room's direction
+APART = 1.25  # a coupled mode is heard apart only if it decays this much slower than the listener's room alone
+
+
+class NeighbourTail:
+    """A coupled mode heard apart from the listener's room and the slowest mode (``RenderConfig.neighbour_tails``):
+    its convolution (``conv``: the tails of the room it rings in, the own room's noise, which those tails never
+    share with it), the per-ear gains of the direction it arrives from (``ears``, ``portal``, ``portal_idx``), its
+    tail weights (``w``) and per-group amplitudes (``shapes``), the room (``room``; -1 idle) and whether its
+    convolution still rings (``live``); ``key`` what its weights and amplitudes were made for, ``at`` where its
+    direction was found (found again 10 cm on)."""
+
+    __slots__ = ("conv", "ears", "portal", "portal_idx", "w", "shapes", "room", "live", "key", "at")
+
+    def __init__(self, conv, block: int):
+        self.conv, self.ears = conv, np.ones((2, block + 1), np.complex64)
+        self.portal, self.portal_idx, self.w, self.shapes, self.room, self.live = None, -1, None, None, -1, False
+        self.key, self.at = None, None
 
 
 class LateState(PerSource):
@@ -38,7 +55,7 @@ class LateState(PerSource):
                  "ears", "portal", "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono",
                  "fdn_out", "key", "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes",
                  "fdn_rt", "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send", "rt_slow", "sends_slow",
-                 "buildup", "buildup_slow")
+                 "buildup", "buildup_slow", "more")
     ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("send_slow", (), np.float64, 0),
             ("group", (), np.int64, 0), ("use_occ", (), bool, True), ("group_moved", (), bool, False))
 
@@ -50,6 +67,7 @@ class LateState(PerSource):
         self.portal_idx = -1
         self.level = None
         self.buildup = self.buildup_slow = None  # TailBuildUp of other rooms' sends (RenderConfig.tail_buildup)
+        self.more: list[NeighbourTail] = []  # coupled modes heard apart besides the slowest (convolution only)
         self.sends = np.zeros((groups, block), np.float32)
         self.rt_send = np.full(groups, 0.5)  # per group the decay its sends' distance law uses (late_send)
         self.rt_slow = np.full(groups, 0.5)  # the same for the slowest coupled mode's sends
@@ -178,6 +196,13 @@ class LateReverb:
                                                  probe_edts=self.tail_edt,
                                                  groups=self.groups, **self.tail_colour())
                 st.ears = np.ones((2, cfg.block + 1), np.complex64)  # the slow tail's direction
+                # rooms beyond two: the modes that ring in yet other rooms, each heard from its doorway. Their
+                # tails are those rooms' own, so the own-room noise serves (the same partitions, cached)
+                extra = min(cfg.neighbour_tails, len(self.r.coupling.rooms) - 2)
+                st.more = [NeighbourTail(ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed,
+                                                           probe_edts=self.tail_edt, groups=self.groups,
+                                                           **self.tail_colour()), cfg.block)
+                           for _ in range(max(extra, 0))]
         return st
 
     def grow(self, st: LateState | None, cap: int) -> None:
@@ -191,7 +216,8 @@ class LateReverb:
         return self.r.direct.max_delay() + MAX_MIXING_TIME  # the send's pre-delay
 
     def reset(self, st: LateState) -> None:
-        for rev in (st.fdn, st.fdn_slow, st.conv, st.conv_slow, st.buildup, st.buildup_slow):
+        for rev in (st.fdn, st.fdn_slow, st.conv, st.conv_slow, st.buildup, st.buildup_slow,
+                    *(t.conv for t in st.more)):
             if rev is not None:
                 rev.reset()
         st.level, st.key, st.fdn_key = None, None, None
@@ -296,7 +322,8 @@ class LateReverb:
             # the slowest mode's share dies out as slowly as that mode before it reaches the listener: a source in
             # a dead room beside a live one rings on in the live one, not at the dead room's decay
             np.maximum(st.rt_send, float(np.mean(split["slow_rt"][3:6])), out=st.rt_slow)
-            st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) + np.count_nonzero(st.modal_w[1] > 1e-4))
+            st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) + np.count_nonzero(st.modal_w[1] > 1e-4)
+                                  + sum(np.count_nonzero(t.w > 1e-4) for t in st.more if t.room >= 0))
         self.r.stats["room_reverbs"] = st.room_reverbs
         sends = st.sends
         late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, st.rt_send,
@@ -313,7 +340,11 @@ class LateReverb:
         st.conv.process(sends, w_own, sh_own, out=out, shapes_key=key)
         st.conv_slow.process(st.sends_slow, w_slow, sh_slow, out=out, shapes_key=key,
                              ears=self._portal_ears(st, lis))
-
+        for t in st.more:  # the other rooms' modes heard apart: the slow mode's sends (its distance law), own shapes
+            if t.live:
+                t.conv.process(st.sends_slow, t.w, t.shapes, out=out, shapes_key=t.key,
+                               ears=self._portal_ears(t, lis))
+                t.live = t.room >= 0  # an idle tail ramps to silence in one block, then stops
     def _fdn_modal(self, st, split, lr, sends, out) -> None:
         """The FDN option with rooms of their own: one network decaying as the listener's room does with its doors
         as they are, one as the slowest mode, each fed the rooms' sends at their mid-band amplitudes of the energy
@@ -332,9 +363,10 @@ class LateReverb:
             np.add(out, fdn.process(st.mono, out=st.fdn_out), out=out)
 
     def _portal_ears(self, st, lis):
-        """The slow tail's per-ear gains when it rings in another room: the level differences of the direction it
-        enters from (the doorway, ``_modal_mix``), for the head as it is turned now (a table row per 5 degrees of
-        azimuth; the gains are made again only when the row changes: nothing allocated while the head turns)."""
+        """A tail's per-ear gains when it rings in another room (``st``: the late state for the slow tail, or a
+        :class:`NeighbourTail`): the level differences of the direction it enters from (the doorway,
+        ``_modal_mix``), for the head as it is turned now (a table row per 5 degrees of azimuth; the gains are made
+        again only when the row changes: nothing allocated while the head turns)."""
         portal = st.portal
         if portal is None:
             return None
@@ -374,14 +406,13 @@ class LateReverb:
         lf = np.log2(np.maximum(fb, BANDS[0]))
         self._portal_bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
 
-    def _portal(self, lis, split, lr):
-        """Where the slow mode's room is heard from when it is not the listener's: the last bend of the open path
+    def _portal(self, lis, room, lr):
+        """Where room ``room`` (a mode's) is heard from when it is not the listener's: the last bend of the open path
         from its probe (the doorway), the probe itself in sight or through a wall; and the share of that room's
         energy arriving straight from there rather than diffused in the listener's room: x / (1 + x),
         x = D / (4 pi r^2), D the listener's room's absorption plus its couplings at 1 kHz, r the distance (an
         aperture of the coupling's area radiating the neighbour's diffuse field). None for the listener's own
         room or mono output."""
-        room = split["slow_room"]
         if room == lr or self.r.cfg.output == "mono":
             return None
         self._portal_tables()
@@ -403,13 +434,17 @@ class LateReverb:
         P = len(self.r.probes)
         rt = self.tail_rt
 
-        def blend(room, rt_now, weights):
+        def blend(room, rt_now, weights, single=False):
             """Amplitude weights over the tails for ``room``'s probes (energy ``weights``), blended between doors
             open and shut so that the mid-band RT is ``rt_now``; and the blend's energy per band re the tails'
-            normalisation (each tail carries rt_b / rt_mid of a flat one)."""
+            normalisation (each tail carries rt_b / rt_mid of a flat one). ``single``: one tail only (the nearest
+            probe's, doors open or shut, whichever decays nearer ``rt_now``): a neighbour's tail costs one
+            convolution."""
             mine = np.flatnonzero(self._probe_room == room)
             if len(mine) == 0:
                 mine = np.array([int(np.argmax(weights))])
+            if single:
+                mine = mine[[int(np.argmax(weights[mine]))]]
             p = weights[mine] if weights[mine].sum() > 0 else np.ones(len(mine))
             p = p / p.sum()
             shut = self._shut[mine]
@@ -417,6 +452,8 @@ class LateReverb:
             span = s_[MID].mean() - o[MID].mean()  # a room without openings: no shut-door tail of its own
             beta = float(np.clip((rt_now[MID].mean() - o[MID].mean()) / span, 0.0, 1.0)) \
                 if span > 0.01 * o[MID].mean() else 0.0
+            if single:
+                beta = float(beta > 0.5)
             out = np.zeros(len(rt))
             out[mine] = np.sqrt(p * (1 - beta))
             out[shut] += np.sqrt(p * beta)
@@ -433,8 +470,57 @@ class LateReverb:
         sh_own, sh_slow = np.empty((self.groups, len(BANDS))), np.empty((self.groups, len(BANDS)))
         sh_own[0], sh_own[1:] = own[lr], own
         sh_slow[0], sh_slow[1:] = slow[lr], slow
-        st.portal, st.portal_idx = self._portal(lis, split, lr), -1
+        st.portal, st.portal_idx = self._portal(lis, split["slow_room"], lr), -1
+        own_e = E * (1 - f)
+        for t, (k, room) in zip(st.more, self._apart(st, split, lr)):  # other rooms' modes heard apart
+            if room < 0:
+                if t.room >= 0:  # fades out in its next block
+                    t.w = np.zeros(len(rt))
+                t.room, t.key = -1, None
+                continue
+            f_k = split["modes_share"][k][:, lr]
+            own_e = own_e - E * f_k
+            mine = np.flatnonzero(self._probe_room == room)
+            key = (split["gen"], lr, k, int(mine[np.argmax(near[mine])]))
+            if t.key != key:  # the doors, the listener's room or the nearest probe changed, not a step
+                t.w, e_k = blend(room, split["modes_rt"][k], near, single=True)
+                amp = np.sqrt(np.maximum(E * f_k, 0.0) / np.maximum(e_k, 1e-9))
+                t.shapes = np.empty((self.groups, len(BANDS)))
+                t.shapes[0], t.shapes[1:] = amp[lr], amp
+                if t.room < 0 and not t.live:  # woken: no history from an earlier room
+                    t.conv.reset()
+                t.room, t.live, t.key, t.at = room, True, key, None
+            if t.at is None or farther(t.at, lis.position, 0.1):  # its doorway, found again every 10 cm
+                t.portal, t.portal_idx, t.at = self._portal(lis, room, lr), -1, lis.position.copy()
+        if any(t.room >= 0 for t in st.more):
+            own = np.sqrt(np.maximum(own_e, 0.0) / np.maximum(e_own, 1e-9))
+            sh_own[0], sh_own[1:] = own[lr], own
         return (w_own, w_slow), (sh_own, sh_slow)
+
+    def _apart(self, st, split, lr) -> list:
+        """Which coupled modes besides the slowest the listener hears apart, as (mode, room) pairs (room -1: none),
+        one per :class:`NeighbourTail`: modes that ring in another room than the listener's and the slowest mode's
+        (one per room) and decay at least ``APART`` times slower than the listener's room alone, the ones that
+        bring the most energy into the listener's room first (rooms near in the coupling, not in metres)."""
+        if not st.more:
+            return []
+        taken = {lr, int(split["slow_room"])}
+        own_mid = float(np.mean(split["own_rt"][lr, MID]))
+        E = split["energy"][:, lr, MID].mean(1)  # (R_s,)
+        cands = []
+        for k in range(1, len(split["modes_rt"])):
+            room = int(split["modes_room"][k])
+            if room in taken or float(np.mean(split["modes_rt"][k, MID])) < APART * own_mid:
+                continue
+            if not np.any(self._probe_room == room):
+                continue
+            cands.append((float(np.max(E * split["modes_share"][k][:, lr, MID].mean(1))), k, room))
+        best: dict = {}
+        for score, k, room in sorted(cands, reverse=True):  # one mode per room: the one bringing the most
+            if room not in best and score > 0:
+                best[room] = (k, room)
+        chosen = list(best.values())[:len(st.more)]
+        return chosen + [(-1, -1)] * (len(st.more) - len(chosen))
 
     def _late_groups(self, st, n: int):
         """Per source, which send it joins (0: the listener's room, or rooms unknown; 1 + r: room r, filtered by

@@ -42,7 +42,11 @@ listeners are added):
   decay (its tails with doors open and shut, blended as its doors are) and the coupled rooms' slowest mode, with
   the energies of the rooms' energy balance in time (:meth:`RoomCoupling.late_split`): a dead room beside a live
   one decays with two slopes. A slowest mode ringing in another room is heard from its doorway, in part (the
-  level differences of that direction; ``late.LateReverb._portal``).
+  level differences of that direction; ``late.LateReverb._portal``). With three rooms or more, up to
+  ``RenderConfig.neighbour_tails`` (default 1) further modes ringing in yet other rooms, each decaying at least
+  1.25 times slower than the listener's room alone, are heard apart as well: one tail each (the nearest probe of
+  that room), from that room's doorway, chosen by the energy they bring into the listener's room
+  (``late.LateReverb._apart``); a hall between two live rooms hears each of them decay as itself.
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank

@@ -4,7 +4,11 @@
 - ``builtin:two-rooms?door=open|closed|sealed`` two 4 x 4 x 3 m rooms side by side, joined at x = 4 by a 0.1 m
   stud partition (``Sheetrock``, 10 kg/m^2) with a 0.9 x 2.1 m doorway in its middle (a hinged ``door`` leaf, 8
   kg/m^2, open or closed), or with no doorway at all (sealed); ``&west=MATERIAL`` / ``&east=MATERIAL`` give that
-  room's walls, floor and ceiling one material (a dead room beside a live one: coupled-room decay).
+  room's walls, floor and ceiling one material (a dead room beside a live one: coupled-room decay);
+- ``builtin:three-rooms?door=open|closed|sealed`` three such rooms in a row (x in [0, 4], [4, 8], [8, 12]), two
+  partitions with a doorway each (``door_w`` between west and middle, ``door_e`` between middle and east);
+  ``&west=`` / ``&middle=`` / ``&east=`` give a room one material (a dead hall between two live rooms: more than
+  one neighbouring room heard apart).
 
 Walls, floor and ceiling are boxes 0.2 m thick (the partition 0.1 m), so they are solid for rays, rooms, probes
 and paths alike. Surfaces: plaster walls, parquet floor, smooth plaster ceiling.
@@ -88,3 +92,61 @@ def two_rooms(door: str = "open", L: float = 8.0, W: float = 4.0, H: float = 3.0
                             open_fraction=1.0 if door == "open" else 0.0, rooms=("west", "east"), width=DOOR_WIDTH))
     spec = f"builtin:two-rooms?door={door}" + "".join(f"&{k}={v}" for k, v in (("west", west), ("east", east)) if v)
     return Scene(f"two rooms ({door})", parts, objects, rooms, spec=spec, mapping_name="explicit")
+
+
+def _rooms_in_a_row(names: list, types: list, door: str, mats: dict, W: float = 4.0, H: float = 3.0,
+                    R: float = 4.0) -> tuple[list, list, list]:
+    """Rooms of R x W x H m side by side along x, each with its own floor, ceiling and outer walls (``mats[name]``,
+    or the defaults), a ``Sheetrock`` partition between neighbours with a 0.9 x 2.1 m doorway in its middle (a
+    hinged leaf per doorway) unless sealed: (parts, doors, rooms)."""
+    n, t = len(names), T_PARTITION / 2
+    L = n * R
+    y0, y1 = W / 2 - DOOR_WIDTH / 2, W / 2 + DOOR_WIDTH / 2
+    parts, objects, rooms = [], [], []
+    for k, name in enumerate(names):
+        mat = mats.get(name)
+        wm, fm, cm = (mat, mat, mat) if mat else (WALLS, FLOOR, CEILING)
+        x0, x1 = (-T if k == 0 else k * R), (L + T if k == n - 1 else (k + 1) * R)
+        parts += [StaticPart(f"floor_{name}", StructureKind.FLOOR, "floor", fm, _box((x0, -T, -T), (x1, W + T, 0))),
+                  StaticPart(f"ceiling_{name}", StructureKind.CEILING, "ceiling", cm,
+                             _box((x0, -T, H), (x1, W + T, H + T))),
+                  StaticPart(f"wall_{name}_s", StructureKind.WALL, "wall", wm, _box((x0, -T, 0), (x1, 0, H))),
+                  StaticPart(f"wall_{name}_n", StructureKind.WALL, "wall", wm, _box((x0, W, 0), (x1, W + T, H)))]
+        lo = k * R + (t if k > 0 else 0.0)
+        hi = (k + 1) * R - (t if k < n - 1 else 0.0)
+        rooms.append(Room(name, types[k], np.array([(lo, 0), (hi, 0), (hi, W), (lo, W)], float), 0.0, H))
+    parts += [StaticPart("wall_end_w", StructureKind.WALL, "wall", mats.get(names[0]) or WALLS,
+                         _box((-T, 0, 0), (0, W, H))),
+              StaticPart("wall_end_e", StructureKind.WALL, "wall", mats.get(names[-1]) or WALLS,
+                         _box((L, 0, 0), (L + T, W, H)))]
+    for k in range(1, n):
+        xm, tag = k * R, "we"[k - 1] if n == 3 else str(k)
+        boxes = ([((xm - t, 0, 0), (xm + t, W, H))] if door == "sealed" else
+                 [((xm - t, 0, 0), (xm + t, y0, H)), ((xm - t, y1, 0), (xm + t, W, H)),
+                  ((xm - t, y0, DOOR_HEIGHT), (xm + t, y1, H))])
+        parts += [StaticPart(f"partition_{tag}_{j}", StructureKind.WALL, "wall", PARTITION, _box(lo, hi))
+                  for j, (lo, hi) in enumerate(boxes)]
+        if door != "sealed":
+            leaf = _box((0.0, -0.02, 0.0), (DOOR_WIDTH, 0.02, DOOR_HEIGHT - 0.01))
+            objects.append(Door(f"door_{tag}", "door", DOOR, leaf, movable=False, hinge=(xm, y0), closed_yaw=90.0,
+                                swing=-1, open_fraction=1.0 if door == "open" else 0.0,
+                                rooms=(names[k - 1], names[k]), width=DOOR_WIDTH))
+    return parts, objects, rooms
+
+
+def three_rooms(door: str = "open", west: str | None = None, middle: str | None = None,
+                east: str | None = None) -> Scene:
+    """Three 4 x 4 x 3 m rooms in a row (the module docstring)."""
+    if door not in ("open", "closed", "sealed"):
+        raise SceneSpecError(f"three-rooms: door must be open, closed or sealed, got '{door}'")
+    from sonicverse_core.scene.materials import MATERIALS
+
+    mats = {"west": west, "middle": middle, "east": east}
+    for side, m in mats.items():
+        if m is not None and m not in MATERIALS:
+            raise SceneSpecError(f"three-rooms: unknown {side} material '{m}'; use one of "
+                                 f"{', '.join(sorted(MATERIALS))}")
+    parts, objects, rooms = _rooms_in_a_row(["west", "middle", "east"], ["living room", "hallway", "bedroom"],
+                                            door, mats)
+    spec = f"builtin:three-rooms?door={door}" + "".join(f"&{k}={v}" for k, v in mats.items() if v)
+    return Scene(f"three rooms ({door})", parts, objects, rooms, spec=spec, mapping_name="explicit")

@@ -1,7 +1,8 @@
 """Scene specs: one string names a scene.
 
 - ``builtin:apartment?seed=N`` the procedural home (default seed 0)
-- ``builtin:l-room``, ``builtin:two-rooms?door=open|closed|sealed`` reference rooms for sound between rooms
+- ``builtin:l-room``, ``builtin:two-rooms?door=open|closed|sealed``, ``builtin:three-rooms?door=...`` reference
+  rooms for sound between rooms
 - ``shoebox:LxWxH?material=NAME`` (or ``floor=``, ``ceiling=``, ``walls=``, ``x0=``...)
 - a path to a .glb/.gltf/.obj/.ply file
 - ``mp3d:DIR`` a Matterport3D house folder, ``igibson:DIR`` an iGibson scene folder
@@ -18,7 +19,9 @@ from sonicverse_core.scene.mapping import MAPPINGS, CategoryMapping, load_mappin
 from sonicverse_core.scene.model import Scene
 
 DEFAULT_SCENE = "builtin:apartment"
-KINDS = ("builtin:apartment", "builtin:l-room", "builtin:two-rooms?door=open|closed|sealed", "shoebox:LxWxH", "FILE.glb|.gltf|.obj|.ply", "mp3d:DIR", "igibson:DIR")
+KINDS = ("builtin:apartment", "builtin:l-room", "builtin:two-rooms?door=open|closed|sealed",
+         "builtin:three-rooms?door=open|closed|sealed", "shoebox:LxWxH", "FILE.glb|.gltf|.obj|.ply", "mp3d:DIR",
+         "igibson:DIR")
 
 
 def _split(spec: str) -> tuple[str, dict[str, str]]:
@@ -58,6 +61,14 @@ def load_scene(spec: str = DEFAULT_SCENE) -> Scene:
             raise SceneSpecError(f"scene spec '{spec}': seed must be an integer") from None
         _unused(spec, params)
         return generate_apartment(seed, mapping, spec=spec)
+    if head == "builtin:three-rooms":
+        from sonicverse_core.scene import reference
+
+        params.pop("mapping", None)
+        door = params.pop("door", "open")
+        surfaces = {k: params.pop(k) for k in ("west", "middle", "east") if k in params}
+        _unused(spec, params)
+        return reference.three_rooms(door, **surfaces)
     if head in ("builtin:l-room", "builtin:two-rooms"):
         from sonicverse_core.scene import reference
 
