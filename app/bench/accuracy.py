@@ -125,6 +125,29 @@ def _late_model(quick: bool):
             + ", ".join(c[0] for c in todo) + "; time: rendering 3 s at 16 kHz", "rows": rows}
 
 
+def _neighbour_tails(quick: bool):
+    """Coupled rooms heard apart besides the slowest mode (``RenderConfig.neighbour_tails``) in bench fidelity's dead
+    hall between two live rooms: the east room's decay heard in the hall, against pyroomacoustics."""
+    from app.bench.fidelity import _cases, _onset, _ours, _pra_polygon, PRA_DELAY, room_parameters
+
+    _, spec, corners, H, mats, src, lis, _ = next(c for c in _cases() if c[0].startswith("dead hall"))
+    t_dir = _onset(spec, src, lis)
+    peer = room_parameters(_pra_polygon(corners, H, *mats[:3], src, lis, 5000 if quick else 20_000, 0, *mats[3:]),
+                           t_dir=t_dir + PRA_DELAY)
+    rows = []
+    _ours(spec, src, lis, 0.5, neighbour_tails=1)  # warm: the kernels and the tails' partitions
+    for n in (0, 1):
+        h, _, t_render = _ours(spec, src, lis, 3.0, neighbour_tails=n)
+        ours = room_parameters(h, t_dir=t_dir)
+        rows.append({"setting": n, "error": float(np.mean(np.abs(np.array(ours["EDT"]) / np.array(peer["EDT"]) - 1))),
+                     "time_s": t_render,
+                     "C50_error_db": [round(a - b, 2) for a, b in zip(ours["C50"], peer["C50"])]})
+    return {"knob": "neighbour_tails", "error_metric": "mean |EDT / EDT_peer - 1| (250 Hz-4 kHz) in bench fidelity's "
+            "dead hall between two live rooms, the source in the east room (one realisation of each model); time: "
+            "rendering 3 s at 16 kHz (a neighbour's tail costs one convolution per listener: bench audio "
+            "--listener-room)", "rows": rows}
+
+
 def _probes(quick: bool):
     from sonicverse_core.acoustics.probes import BakeConfig, bake, default_probe_positions
     from sonicverse_core.geometry.navgrid import NavGrid
@@ -434,7 +457,7 @@ def bench_accuracy(reference_rays: int = 1_000_000, quick: bool = False, plot: s
     from sonicverse_core.progress import progress
 
     steps = [lambda: _rays_and_bounces(reference_rays, quick), lambda: [_scattering(quick)],
-             lambda: [_late_model(quick)],
+             lambda: [_late_model(quick)], lambda: [_neighbour_tails(quick)],
              lambda: [_probes(quick)], lambda: [_hrtf(quick)],
              lambda: [_early(quick)], lambda: [_early_geometry(quick)], lambda: [_reverb(quick)], lambda: [_blocks(quick)], lambda: [_path_cell(quick)]]
     knobs = [k for step in progress(steps, desc="accuracy knobs") for k in step()]
