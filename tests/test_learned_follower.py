@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from agents.imitation import ImitationConfig, train
-from agents.models import AVNav, AVNavConfig, load, save
+from agents.models import AVNav, AVNavConfig, load, load_policy, save
 
 
 def test_the_floor_shield_removes_the_actions_that_would_leave_the_floor_and_only_those():
@@ -59,7 +59,7 @@ def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_
     from app.vr.session import SessionConfig, VRSession
     from sonicverse_core.errors import ConfigError
 
-    model, meta = load(default_checkpoint("av-nav", "SpeakerFollowing"))
+    model, meta = load_policy(default_checkpoint("av-nav", "SpeakerFollowing"))  # an ensemble since session 36
     assert meta["config"]["task"] == "SpeakerFollowing" and model.cfg.action_dim == 2
     r = cli("task", "run", "speaker-following", "--agent", "av-nav", "--episodes", "1", "--max-steps", "30",
             "--json", "--out", str(tmp_path), check_rc=0)
