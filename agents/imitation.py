@@ -23,7 +23,7 @@ from __future__ import annotations
 import csv
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -442,7 +442,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
     """Run DAgger for ``cfg.frames`` frames; checkpoints ``out/model.pt`` (every iteration, with the training state),
     ``out/best.pt`` (the best validation SR + SPL so far) and a line per iteration in ``out/log.csv``. ``resume``
     goes on from ``out/model.pt`` with the configuration it was started with (``cfg`` then only sets ``frames`` and
-    ``iterations``, which may grow)."""
+    ``iterations``, which may grow, and ``device``; any other setting in ``cfg`` that is neither its default nor the
+    run's own is a ConfigError, not silently dropped)."""
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks import make_env
 
@@ -472,6 +473,14 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
         if not state:
             raise ConfigError(f"{ck_path} has no training state to resume from")
         old = ImitationConfig(**meta["config"])
+        # a setting given that is neither the default nor the run's own would be ignored: refused, not dropped
+        base, keep = ImitationConfig(), ("frames", "iterations", "device")
+        clash = [f"{f.name} {getattr(cfg, f.name)!r} (the run's: {getattr(old, f.name)!r})"
+                 for f in fields(ImitationConfig) if f.name not in keep
+                 and getattr(cfg, f.name) != getattr(base, f.name) and getattr(cfg, f.name) != getattr(old, f.name)]
+        if clash:
+            raise ConfigError(f"--resume goes on with the run's own recipe, which these would change: "
+                              f"{'; '.join(clash)}. Drop them, or start a new --out")
         cfg = ImitationConfig(**{**asdict(old), "frames": cfg.frames, "iterations": cfg.iterations,
                                  "device": cfg.device})
         rows, frames, best, start_it = meta["log"], state["frames"], state["best"], state["iteration"] + 1

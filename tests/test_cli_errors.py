@@ -44,6 +44,7 @@ def table(d):
         ["task", "run", "speaker-following", "--agent", "av-nav", "--checkpoint", AV_NAV],
         ["train", "--recipe", "ppo", "--init", AV_NAV, "--task", "SemanticAudioNav",
          "--out", str(d / "ppo")],
+        ["train", "--recipe", "ppo", "--resume", "--out", str(d / "ppo_resume")],
         ["train", "--homes", "0", "--out", str(d / "h0")], ["train", "--homes", "5001", "--out", str(d / "h1")],
         ["train", "--agent", "sound-localizer", "--homes", "40", "--out", str(d / "h2")],
         # numbers

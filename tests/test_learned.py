@@ -253,8 +253,8 @@ def made(monkeypatch):
 
 
 def test_training_resumes_where_it_stopped(tmp_path, made):
-    """A run goes on with its own configuration, and draws its episodes from the first ``homes`` train homes
-    (``--homes N``), never from val or test ones."""
+    """A run goes on with its own configuration (a setting given that would change it is refused, not dropped), and
+    draws its episodes from the first ``homes`` train homes (``--homes N``), never from val or test ones."""
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks.episodes import homes
 
@@ -269,7 +269,9 @@ def test_training_resumes_where_it_stopped(tmp_path, made):
     with open(tmp_path / "run" / "log.csv", "a") as f:  # a kill between the log's line and the checkpoint
         f.write("2,999,0.3\n")
     before = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
-    res = train(ImitationConfig(frames=180, iterations=3, val_episodes=0, epochs=1, seed=99), tmp_path / "run",
+    with pytest.raises(ConfigError, match=r"seed 99 \(the run's: 5\).*learner 'drawn' \(the run's: 'greedy'\)"):
+        train(ImitationConfig(frames=180, iterations=3, seed=99, learner="drawn"), tmp_path / "run", resume=True)
+    res = train(ImitationConfig(frames=180, iterations=3, val_episodes=0, epochs=1), tmp_path / "run",
                 resume=True)
     rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
     assert [int(r["iteration"]) for r in rows] == [0, 1, 2] and [r["iteration"] for r in res["log"]] == [0, 1, 2]

@@ -52,6 +52,8 @@ def cmd_train(a) -> int:
                   or a.task not in ("SpeakerFollowing", "AudioGoal", "SemanticAudioNav")):
         raise ConfigError("--map is for --recipe dagger --agent av-nav --task SpeakerFollowing|AudioGoal|"
                           "SemanticAudioNav")
+    if a.resume and a.recipe == "ppo":
+        raise ConfigError("--resume is for --recipe dagger (a PPO run starts from --init)")
     if a.recipe != "ppo" and (a.nproc > 1 or a.init):
         raise ConfigError("--nproc and --init belong to --recipe ppo (DD-PPO fine-tuning)")
     if a.recipe == "ppo" and a.agent in ("savi", "multitask") and not a.init:
