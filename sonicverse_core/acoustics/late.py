@@ -345,6 +345,7 @@ class LateReverb:
                 t.conv.process(st.sends_slow, t.w, t.shapes, out=out, shapes_key=t.key,
                                ears=self._portal_ears(t, lis))
                 t.live = t.room >= 0  # an idle tail ramps to silence in one block, then stops
+
     def _fdn_modal(self, st, split, lr, sends, out) -> None:
         """The FDN option with rooms of their own: one network decaying as the listener's room does with its doors
         as they are, one as the slowest mode, each fed the rooms' sends at their mid-band amplitudes of the energy
