@@ -438,12 +438,14 @@ def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
                            occupancy=cfg.occupancy if cfg.agent == "multitask" else 0))
 
 
-def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dict:
+def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
+          base: ImitationConfig | None = None) -> dict:
     """Run DAgger for ``cfg.frames`` frames; checkpoints ``out/model.pt`` (every iteration, with the training state),
     ``out/best.pt`` (the best validation SR + SPL so far) and a line per iteration in ``out/log.csv``. ``resume``
     goes on from ``out/model.pt`` with the configuration it was started with (``cfg`` then only sets ``frames`` and
     ``iterations``, which may grow, and ``device``; any other setting in ``cfg`` that is neither its default nor the
-    run's own is a ConfigError, not silently dropped)."""
+    run's own is a ConfigError, not silently dropped; ``base``: the defaults, where the caller's differ from
+    :class:`ImitationConfig`'s, as the command line's do)."""
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks import make_env
 
@@ -474,7 +476,7 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False) -> dic
             raise ConfigError(f"{ck_path} has no training state to resume from")
         old = ImitationConfig(**meta["config"])
         # a setting given that is neither the default nor the run's own would be ignored: refused, not dropped
-        base, keep = ImitationConfig(), ("frames", "iterations", "device")
+        base, keep = base or ImitationConfig(), ("frames", "iterations", "device")
         clash = [f"{f.name} {getattr(cfg, f.name)!r} (the run's: {getattr(old, f.name)!r})"
                  for f in fields(ImitationConfig) if f.name not in keep
                  and getattr(cfg, f.name) != getattr(base, f.name) and getattr(cfg, f.name) != getattr(old, f.name)]

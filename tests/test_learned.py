@@ -252,7 +252,7 @@ def made(monkeypatch):
     return envs
 
 
-def test_training_resumes_where_it_stopped(tmp_path, made):
+def test_training_resumes_where_it_stopped(tmp_path, made, capsys):
     """A run goes on with its own configuration (a setting given that would change it is refused, not dropped), and
     draws its episodes from the first ``homes`` train homes (``--homes N``), never from val or test ones."""
     from sonicverse_core.errors import ConfigError
@@ -271,6 +271,11 @@ def test_training_resumes_where_it_stopped(tmp_path, made):
     before = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
     with pytest.raises(ConfigError, match=r"seed 99 \(the run's: 5\).*learner 'drawn' \(the run's: 'greedy'\)"):
         train(ImitationConfig(frames=180, iterations=3, seed=99, learner="drawn"), tmp_path / "run", resume=True)
+    from app.cli import main  # the command line's own defaults (--val-episodes 8) are not settings given
+
+    assert main(["train", "--resume", "--seed", "7", "--iterations", "3", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "seed 7 (the run's: 5)" in err and "val_episodes" not in err and "epochs" not in err, err
     res = train(ImitationConfig(frames=180, iterations=3, val_episodes=0, epochs=1), tmp_path / "run",
                 resume=True)
     rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))

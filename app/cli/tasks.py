@@ -96,15 +96,25 @@ def cmd_train(a) -> int:
         if res["rank"] != 0:
             return 0
     else:
-        from agents.imitation import ImitationConfig, train
+        from agents.imitation import train
 
-        cfg = ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
-                              size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
-                              aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
-                              homes=a.homes or 0, egomap=a.map, teacher=a.teacher, learner=a.learner)
-        res = train(cfg, a.out, progress=progress, resume=a.resume)
+        base = None
+        if a.resume:  # what the command line gives when a flag is left out: not a setting that would be dropped
+            from app.cli import build_parser
+
+            base = _imitation_config(build_parser().parse_args(["train"]))
+        res = train(_imitation_config(a), a.out, progress=progress, resume=a.resume, base=base)
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
+
+
+def _imitation_config(a):
+    from agents.imitation import ImitationConfig
+
+    return ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
+                           size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
+                           aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
+                           homes=a.homes or 0, egomap=a.map, teacher=a.teacher, learner=a.learner)
 
 
 def cmd_bench_env(a) -> int:
