@@ -186,7 +186,7 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
                   tmp_path / "p")
 
 
-def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli, policy_batch):
+def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli, policy_batch, capsys):
     """`train --ensemble A.pt B.pt`: one float16 file; where av-nav is expected it loads as a PolicyEnsemble whose
     action distribution is the mean of its members' (each with its own GRU state, stepping as it would alone), and
     the harness plays it. Members of another configuration or task, a single member, an existing file: one line,
@@ -229,18 +229,24 @@ def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli
     save(AVNav(AVNavConfig(primitives=primitives_for(3))), other, {"config": {"task": "AudioGoal"}})
     sf = tmp_path / "sf.pt"
     save(AVNav(cfg), sf, {"config": {"task": "SpeakerFollowing"}})
+    from app.cli import main  # the refusals in this process (the command's own entry point ran above)
+
+    def refused(*argv) -> str:
+        assert main(list(argv)) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and err.startswith("sonicverse: error:"), err
+        return err
+
     for args, msg in (((paths[0], other), "share one configuration"), ((paths[0],), "two policies or more"),
                       ((paths[0], sf), "trained on one task"), ((paths[0], paths[1]), "exists")):
         out_dir = tmp_path / ("e" if msg == "exists" else msg.replace(" ", "_"))
-        r = cli("train", "--task", "AudioGoal", "--ensemble", *map(str, args), "--out", str(out_dir), check_rc=2)
-        assert msg in r.stderr and len(r.stderr.strip().splitlines()) == 1
-    r = cli("train", "--task", "SpeakerFollowing", "--ensemble", *map(str, paths), "--out", str(tmp_path / "t"),
-            check_rc=2)
-    assert "not SpeakerFollowing" in r.stderr and not (tmp_path / "t" / "best.pt").exists()
+        assert msg in refused("train", "--task", "AudioGoal", "--ensemble", *map(str, args), "--out", str(out_dir))
+    err = refused("train", "--task", "SpeakerFollowing", "--ensemble", *map(str, paths), "--out", str(tmp_path / "t"))
+    assert "not SpeakerFollowing" in err and not (tmp_path / "t" / "best.pt").exists()
     for extra in (["--map"], ["--learner", "drawn"], ["--resume"]):  # training flags: refused, not ignored
-        r = cli("train", "--task", "AudioGoal", "--ensemble", *map(str, paths), *extra, "--out", str(tmp_path / "u"),
-                check_rc=2)
-        assert "as they are" in r.stderr and not (tmp_path / "u" / "best.pt").exists()
+        err = refused("train", "--task", "AudioGoal", "--ensemble", *map(str, paths), *extra, "--out",
+                      str(tmp_path / "u"))
+        assert "as they are" in err and not (tmp_path / "u" / "best.pt").exists()
     from agents.ppo import PPOConfig, train as train_ppo
     from sonicverse_core.errors import ConfigError
 
