@@ -78,8 +78,8 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = Tru
 
 def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:apartment", seed: int = 0,
                 sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = True,
-                reverb: str = "convolution", er_images: str = "room", er_order: int = 1, neighbour_tails: int = 1,
-                listener_room: str | None = None) -> dict:
+                reverb: str = "convolution", er_images: str = "room", er_order: int = 1,
+                neighbour_tails: int | None = None, listener_room: str | None = None) -> dict:
     """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
     reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how
     many room tails it convolves and from how many rooms sources send to it), with the listener walking and turning every block (so every source's direction, delay and
@@ -92,6 +92,8 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
 
     from sonicverse_core.acoustics.renderer import RenderConfig
 
+    if neighbour_tails is None:  # the renderer's default
+        neighbour_tails = RenderConfig.neighbour_tails
     cfg = RenderConfig(sample_rate=sample_rate, block=block, reverb=reverb, er_images=er_images, er_order=er_order,
                        neighbour_tails=neighbour_tails)
     r = _audio_scene(spec, n_sources, seed, cfg, per_room, listener_room)
