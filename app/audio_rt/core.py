@@ -11,7 +11,6 @@ An exception is caught, counted and written to the error slot, and the block pla
 """
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -19,6 +18,7 @@ import numpy as np
 from app.audio_rt import config as C
 from app.audio_rt.config import AudioConfig, AudioScene
 from app.audio_rt.poses import PoseInterpolator, PoseLayout, mouth
+from app.audio_rt.sched import NICE_CALLBACK, favour_if_time_shared
 from app.audio_rt.shared import Layout, Ring, SeqLock
 from sonicverse_core.acoustics.kernels import all_finite, farther
 
@@ -257,9 +257,10 @@ class AudioCore:
                     tele[C.OUT_UNDERFLOW] += 1
                 if status.priming_output:
                     tele[C.PRIMING] += 1
-            if tele[C.CB_POLICY] < 0:  # once: the scheduling the audio server gave this thread (telemetry's news)
-                tele[C.CB_PRIORITY] = os.sched_getparam(0).sched_priority
-                tele[C.CB_POLICY] = os.sched_getscheduler(0)
+            if tele[C.CB_POLICY] < 0:  # once: the scheduling the audio server gave this thread (telemetry's news),
+                # raised to nice -20 where the server's is time-shared (a machine that refuses it real time)
+                policy, tele[C.CB_PRIORITY], tele[C.CB_NICE] = favour_if_time_shared(NICE_CALLBACK)
+                tele[C.CB_POLICY] = policy
             if frames != self.cfg.block:
                 raise RuntimeError(f"the device delivered {frames} frames, not {self.cfg.block}")
             if tele[C.FAULTS] > 0:  # test hook: the main side asks for a failing block

@@ -348,16 +348,16 @@ class AudioEngine:
             "pose_frames": int(t[C.POSE_FRAMES]), "pose_reads_torn": int(t[C.POSE_TORN]),
             "robot_blocks": int(t[C.ROBOT_BLOCKS]), "robot_blocks_skipped": int(t[C.ROBOT_SKIPPED]),
             "mic_blocks_nonfinite": int(t[C.MIC_NONFINITE]), "renderer_recoveries": int(t[C.RECOVERIES]),
-            "callback_scheduling": _scheduling(int(t[C.CB_POLICY]), int(t[C.CB_PRIORITY])),
+            "callback_scheduling": _scheduling(int(t[C.CB_POLICY]), int(t[C.CB_PRIORITY]), int(t[C.CB_NICE])),
         }
 
 
-def _scheduling(policy: int, priority: int) -> str | None:
-    """A thread's scheduling as the worker's news words it: 'SCHED_FIFO 5', or 'time-shared (SCHED_OTHER)';
-    None before the first callback."""
+def _scheduling(policy: int, priority: int, nice: int = 0) -> str | None:
+    """A thread's scheduling as the worker's news words it: 'SCHED_FIFO 5', or 'time-shared (SCHED_OTHER, nice
+    -20)'; None before the first callback."""
     if policy < 0:
         return None
     names = {getattr(os, n): n for n in ("SCHED_OTHER", "SCHED_FIFO", "SCHED_RR", "SCHED_BATCH", "SCHED_IDLE")
              if hasattr(os, n)}
     name = names.get(policy, f"policy {policy}")
-    return f"{name} {priority}" if name in ("SCHED_FIFO", "SCHED_RR") else f"time-shared ({name})"
+    return f"{name} {priority}" if name in ("SCHED_FIFO", "SCHED_RR") else f"time-shared ({name}, nice {nice})"

@@ -11,18 +11,24 @@ import ctypes
 import shutil
 import subprocess
 
+from app.audio_rt.sched import NICE_SERVER, favour_process_threads
 from sonicverse_core.errors import DependencyError, DeviceError
 
 
 class JackServer:
-    def __init__(self, name: str, rate: int = 48000, period: int = 256, playback: int = 2, capture: int = 2):
+    def __init__(self, name: str, rate: int = 48000, period: int = 256, playback: int = 2, capture: int = 2,
+                 realtime: bool = True):
+        """``realtime`` False: the server runs time-shared (``jackd --no-realtime``), as it does on a machine that
+        refuses it real time; its time-shared threads then get nice -20 where allowed. :attr:`scheduling` says what
+        its threads run at."""
         self.name = name
+        self.scheduling = None
         exe = shutil.which("jackd")
         if exe is None:
             raise DependencyError("jackd not found: install the Debian package jackd2 (scripts/install-system.sh)")
         guard = shutil.which("setpriv")  # util-linux (essential on Debian)
         self.cmd = ([guard, "--pdeathsig", "TERM"] if guard else []) + [
-            exe, "-n", name, "-d", "dummy", "-r", str(rate), "-p", str(period), "-P", str(playback), "-C",
+            exe, "-n", name, *([] if realtime else ["--no-realtime"]), "-d", "dummy", "-r", str(rate), "-p", str(period), "-P", str(playback), "-C",
             str(capture)]
         self.proc = None
         self.start()
@@ -34,6 +40,7 @@ class JackServer:
             err = self.proc.stderr.read() if self.proc.poll() is not None else w.stdout
             self.stop()
             raise DeviceError(f"JACK server '{self.name}' did not start: {err.strip()[-300:]}")
+        self.scheduling = favour_process_threads(self.proc.pid, NICE_SERVER)
 
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:

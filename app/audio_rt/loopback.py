@@ -47,22 +47,34 @@ class PlatformProbe:
     --laptop: it leaves the CPU idle states alone; -v: every wake-up, written to a file so that nothing blocks it),
     and the CPU time the hypervisor stole (/proc/stat). Nothing of ours runs above FIFO 90, so a wake-up latency
     longer than a period is the platform's (kernel or hypervisor), not the pipeline's; :meth:`attribute` says which
-    xruns fell where the platform itself stalled for longer than an audio period."""
+    xruns fell where the platform itself stalled for longer than an audio period.
+
+    On a machine that refuses SCHED_FIFO the probe runs time-shared at nice -20, the priority the callback falls back
+    to (:mod:`app.audio_rt.sched`): its wake-ups then show what such a thread gets from the platform, our own
+    threads' load included. ``probe_scheduling`` in the result says which."""
 
     INTERVAL_US = 1000
 
     def __init__(self, seconds: float):
         import tempfile
 
-        self.proc, self.why, self.log = None, None, None
+        self.proc, self.why, self.log, self.scheduling = None, None, None, None
         exe = shutil.which("cyclictest")
         if exe is None:
             self.why = "cyclictest not found: install the Debian package rt-tests"
         else:
+            from app.audio_rt.sched import NICE_CALLBACK, fifo_allowed, nice_allowed
+
             self.log = tempfile.TemporaryFile("w+")
-            self.proc = subprocess.Popen([exe, "-m", "-p", "90", "-i", str(self.INTERVAL_US), "-d", "0", "-t", "-a",
-                                          "-q", "--laptop", "-v", "-D", str(int(np.ceil(seconds)))],
+            fifo = fifo_allowed()
+            # time-shared: coreutils' nice sets the value before cyclictest starts its threads (they inherit it)
+            cmd = [exe, "-m", "-p", "90"] if fifo else \
+                [shutil.which("nice") or "nice", "-n", str(NICE_CALLBACK), exe, "-m", "--policy=normal"]
+            self.proc = subprocess.Popen([*cmd, "-i", str(self.INTERVAL_US), "-d", "0", "-t", "-a", "-q", "--laptop",
+                                          "-v", "-D", str(int(np.ceil(seconds)))],
                                          stdout=self.log, stderr=subprocess.STDOUT, text=True)
+            self.scheduling = "SCHED_FIFO 90" if fifo else \
+                f"time-shared, nice {NICE_CALLBACK if nice_allowed(NICE_CALLBACK) else 0} (SCHED_FIFO refused)"
         self.steal0 = self._steal()
         self.samples = np.zeros((0, 2))  # (time s from the start, latency ms) of every wake-up, all CPUs
 
@@ -97,6 +109,7 @@ class PlatformProbe:
                 out["wakeups"] = int(len(a))
             else:
                 self.why = f"cyclictest gave no result: {text.strip().splitlines()[-1:] or self.proc.returncode}"
+        out["probe_scheduling"] = self.scheduling
         if self.why:
             out["why"] = self.why
         return out

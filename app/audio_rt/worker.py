@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 from app.audio_rt import config as C
+from app.audio_rt.sched import NICE_ROBOTS, NICE_SUPERVISOR, favour_this_thread
 
 
 def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str = "all") -> None:
@@ -153,7 +154,7 @@ def run_robots(conn, cfg, scene_setup, shm_path: str) -> None:
     gc.freeze()
     gc.disable()
     conn.send(("ready", {"pid": os.getpid()}))
-    _realtime(3)
+    favour_this_thread(3, NICE_ROBOTS)
     done = 0  # stream frames rendered: the robots' rings are indexed by stream frame, like the user's and the mic's
     while True:
         if _stop_asked(conn, 0):
@@ -210,16 +211,6 @@ def _send(conn, msg) -> None:
         pass
 
 
-def _realtime(prio: int) -> str:
-    """Run this thread at SCHED_FIFO ``prio`` where allowed (otherwise as it is); says which."""
-    try:
-        prio = max(1, min(prio, os.sched_get_priority_max(os.SCHED_FIFO)))
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-        return f"SCHED_FIFO {prio}"
-    except (OSError, AttributeError) as exc:
-        return f"time-shared (SCHED_FIFO refused: {getattr(exc, 'strerror', None) or exc})"
-
-
 def _jack_period() -> int | None:
     """The JACK server's frames per cycle at the stream's start; None when jack_bufsize cannot say (the telemetry
     then counts each flagged block as an xrun and says so: ``cycle_blocks`` None)."""
@@ -232,10 +223,10 @@ def _jack_period() -> int | None:
 
 
 def _realtime_supervisor() -> str:
-    """Run this (supervising) thread at a real-time priority below the audio callback's, where allowed: it holds
-    the GIL for microseconds every 50 ms, and a time-shared thread preempted while holding it would stall the
-    callback (priority inversion) when the machine is loaded."""
-    return _realtime(4)
+    """Run this (supervising) thread at a real-time priority below the audio callback's, where allowed (else at a
+    time-shared priority below the callback's fallback): it holds the GIL for microseconds every 50 ms, and a thread
+    preempted while holding it would stall the callback (priority inversion) when the machine is loaded."""
+    return favour_this_thread(4, NICE_SUPERVISOR)
 
 
 def main() -> None:

@@ -250,7 +250,7 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
     try:
         from app.audio_rt.loopback import PlatformProbe
 
-        with JackServer(name, period=period), _session(scene, (512, 512), audio="live", device="system",
+        with JackServer(name, period=period) as srv, _session(scene, (512, 512), audio="live", device="system",
                                                        task=task, realtime=realtime) as s:
             served = jack_buffer_size()  # the server's frames per cycle, as it reports them
             s.frame()  # the loop is running (first poses handed over) and the JACK graph has settled: then count
@@ -266,6 +266,7 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
             platform = probe.result()
             platform["supervisor_scheduling"] = s.audio.engine.info.get("supervisor_scheduling")
             platform["callback_scheduling"] = tel["callback_scheduling"]
+            platform["jack_scheduling"] = srv.scheduling
             platform.update(probe.attribute(tel["xrun_at_s"], tel["cycle_ms"], callback_ms=tel["xrun_callback_ms"]))
             r = s.summary()
         extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}

@@ -37,6 +37,8 @@ export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d
 nproc; uname -r; grep -m1 "model name" /proc/cpuinfo; grep -o -w -E "avx2|avx512f|fma" /proc/cpuinfo | sort -u | xargs
 python3 -c "import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)"
 command -v jackd cyclictest || exit 4
+python3 -c "from app.audio_rt import sched; print('SCHED_FIFO allowed:', sched.fifo_allowed(), '; nice -20 allowed:',
+            sched.nice_allowed(-20))"
 python3 -c "import sounddevice as sd; print(sd.get_portaudio_version()[1])" || exit 5
 T0=$SECONDS
 for r in $RUNS; do
@@ -60,7 +62,8 @@ p = b.get("platform", {})
 print(json.dumps({k: b.get(k) for k in ("task", "agent", "jack_period", "loop_fps", "xruns", "xrun_blocks", "cycle_blocks",
                                           "callbacks", "xrun_at_s",
                                           "xrun_callback_ms", "callback_ms", "callback_errors")}
-                 | {k: p.get(k) for k in ("supervisor_scheduling", "callback_scheduling", "wakeup_ms_max", "steal_ms",
+                 | {k: p.get(k) for k in ("supervisor_scheduling", "callback_scheduling", "jack_scheduling",
+                                          "probe_scheduling", "wakeup_ms_max", "steal_ms",
                                           "platform_stalls", "xruns_in_platform_stalls", "xruns_callback_overran",
                                           "xruns_unexplained", "why")}))
 PY
