@@ -49,9 +49,8 @@ class PlatformProbe:
     longer than a period is the platform's (kernel or hypervisor), not the pipeline's; :meth:`attribute` says which
     xruns fell where the platform itself stalled for longer than an audio period.
 
-    On a machine that refuses SCHED_FIFO the probe runs time-shared at nice -20, the priority the callback falls back
-    to (:mod:`app.audio_rt.sched`): its wake-ups then show what such a thread gets from the platform, our own
-    threads' load included. ``probe_scheduling`` in the result says which."""
+    On a machine that refuses SCHED_FIFO there is no probe (cyclictest takes a real-time priority whatever its
+    ``--policy``): the result's ``why`` says so, and only the stolen time is measured."""
 
     INTERVAL_US = 1000
 
@@ -63,18 +62,16 @@ class PlatformProbe:
         if exe is None:
             self.why = "cyclictest not found: install the Debian package rt-tests"
         else:
-            from app.audio_rt.sched import NICE_CALLBACK, fifo_allowed, nice_allowed
+            from app.audio_rt.sched import fifo_allowed
 
-            self.log = tempfile.TemporaryFile("w+")
-            fifo = fifo_allowed()
-            # time-shared: coreutils' nice sets the value before cyclictest starts its threads (they inherit it)
-            cmd = [exe, "-m", "-p", "90"] if fifo else \
-                [shutil.which("nice") or "nice", "-n", str(NICE_CALLBACK), exe, "-m", "--policy=normal"]
-            self.proc = subprocess.Popen([*cmd, "-i", str(self.INTERVAL_US), "-d", "0", "-t", "-a", "-q", "--laptop",
-                                          "-v", "-D", str(int(np.ceil(seconds)))],
-                                         stdout=self.log, stderr=subprocess.STDOUT, text=True)
-            self.scheduling = "SCHED_FIFO 90" if fifo else \
-                f"time-shared, nice {NICE_CALLBACK if nice_allowed(NICE_CALLBACK) else 0} (SCHED_FIFO refused)"
+            if fifo_allowed():
+                self.log = tempfile.TemporaryFile("w+")
+                self.proc = subprocess.Popen([exe, "-m", "-p", "90", "-i", str(self.INTERVAL_US), "-d", "0", "-t",
+                                              "-a", "-q", "--laptop", "-v", "-D", str(int(np.ceil(seconds)))],
+                                             stdout=self.log, stderr=subprocess.STDOUT, text=True)
+                self.scheduling = "SCHED_FIFO 90"
+            else:  # cyclictest sets a real-time priority whatever its --policy (seen: it exits at once)
+                self.why = "no platform probe: cyclictest needs a real-time priority, which this machine refuses"
         self.steal0 = self._steal()
         self.samples = np.zeros((0, 2))  # (time s from the start, latency ms) of every wake-up, all CPUs
 

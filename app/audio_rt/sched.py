@@ -19,6 +19,25 @@ NICE_SUPERVISOR = -15
 NICE_ROBOTS = -10
 NICE_SERVER = -20
 
+ROLES = ("callback", "supervisor", "robots", "server")
+
+
+def nice_roles() -> frozenset:
+    """The threads that take the time-shared fallback: ``SONICVERSE_RT_NICE`` (a comma-separated subset of
+    callback, supervisor, robots, server; 'none' for none), all of them when unset."""
+    v = os.environ.get("SONICVERSE_RT_NICE")
+    if v is None:
+        return frozenset(ROLES)
+    got = frozenset(r.strip() for r in v.split(",") if r.strip() and r.strip() != "none")
+    bad = got - set(ROLES)
+    if bad:
+        from sonicverse_core.errors import ConfigError
+
+        raise ConfigError(f"SONICVERSE_RT_NICE: unknown thread role(s) {sorted(bad)}; known: {', '.join(ROLES)}, "
+                          "or none")
+    return got
+
+
 TIME_SHARED = frozenset(getattr(os, n) for n in ("SCHED_OTHER", "SCHED_BATCH", "SCHED_IDLE") if hasattr(os, n))
 
 
@@ -31,7 +50,7 @@ def renice(tid: int, nice: int) -> int | None:
         return None
 
 
-def favour_this_thread(prio: int, nice: int) -> str:
+def favour_this_thread(prio: int, nice: int, role: str) -> str:
     """Run the calling thread at SCHED_FIFO ``prio`` where allowed; else at nice ``nice`` where allowed; else as it
     is. Says which: 'SCHED_FIFO 4', 'time-shared, nice -15 (SCHED_FIFO refused: ...)' or 'time-shared, nice 0
     (SCHED_FIFO refused: ...; nice -15 refused)'."""
@@ -42,24 +61,26 @@ def favour_this_thread(prio: int, nice: int) -> str:
     except (OSError, AttributeError) as exc:
         why = f"SCHED_FIFO refused: {getattr(exc, 'strerror', None) or exc}"
     tid = threading.get_native_id()
+    if role not in nice_roles():
+        return f"time-shared, nice {thread_nice(tid)} ({why}; no nice asked: SONICVERSE_RT_NICE)"
     got = renice(tid, nice)
     if got is None:
         return f"time-shared, nice {thread_nice(tid)} ({why}; nice {nice} refused)"
     return f"time-shared, nice {got} ({why})"
 
 
-def favour_if_time_shared(nice: int) -> tuple[int, int, int]:
+def favour_if_time_shared(nice: int, role: str = "callback") -> tuple[int, int, int]:
     """For a thread whose scheduling someone else chose (the audio server's client thread, which runs the stream's
     callback): when it is time-shared, raise its time-shared priority to ``nice`` where allowed. Returns (policy,
     real-time priority, nice value) as they are afterwards (the telemetry's news)."""
     policy = os.sched_getscheduler(0)
     tid = threading.get_native_id()
-    if policy in TIME_SHARED:
+    if policy in TIME_SHARED and role in nice_roles():
         renice(tid, nice)
     return policy, os.sched_getparam(0).sched_priority, thread_nice(tid)
 
 
-def favour_process_threads(pid: int, nice: int) -> str:
+def favour_process_threads(pid: int, nice: int, role: str = "server") -> str:
     """Another process's threads (the JACK server's): those that run time-shared get nice ``nice`` where allowed.
     Says what its threads run at afterwards: 'SCHED_FIFO 10 (2 threads), time-shared nice -20 (3 threads)'."""
     counts: dict[str, int] = {}
@@ -71,7 +92,8 @@ def favour_process_threads(pid: int, nice: int) -> str:
         try:
             policy = os.sched_getscheduler(tid)
             if policy in TIME_SHARED:
-                renice(tid, nice)
+                if role in nice_roles():
+                    renice(tid, nice)
                 key = f"time-shared nice {thread_nice(tid)}"
             else:
                 key = f"{'SCHED_FIFO' if policy == os.SCHED_FIFO else f'policy {policy}'} " \

@@ -154,7 +154,7 @@ def run_robots(conn, cfg, scene_setup, shm_path: str) -> None:
     gc.freeze()
     gc.disable()
     conn.send(("ready", {"pid": os.getpid()}))
-    favour_this_thread(3, NICE_ROBOTS)
+    favour_this_thread(3, NICE_ROBOTS, "robots")
     done = 0  # stream frames rendered: the robots' rings are indexed by stream frame, like the user's and the mic's
     while True:
         if _stop_asked(conn, 0):
@@ -226,7 +226,7 @@ def _realtime_supervisor() -> str:
     """Run this (supervising) thread at a real-time priority below the audio callback's, where allowed (else at a
     time-shared priority below the callback's fallback): it holds the GIL for microseconds every 50 ms, and a thread
     preempted while holding it would stall the callback (priority inversion) when the machine is loaded."""
-    return favour_this_thread(4, NICE_SUPERVISOR)
+    return favour_this_thread(4, NICE_SUPERVISOR, "supervisor")
 
 
 def main() -> None:

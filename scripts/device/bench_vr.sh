@@ -11,8 +11,9 @@
 #             looks; speech too if a run says any: there is no espeak-ng there)
 # The tree must stay under the tool's 64 MiB: untrack the checkpoints this needs not (agents/checkpoints/*.pt but
 # sound-localizer.pt) for the call, and ignore them in .git/info/exclude; restore both afterwards.
-# Usage: scripts/device/bench_vr.sh [SECONDS] [TASK:AGENT[:JACK_PERIOD] | audio:SOURCES ...] (the period 256 unless
-# given: 256, 512 or 1024 frames); one JSON line per run in
+# Usage: scripts/device/bench_vr.sh [SECONDS] [TASK:AGENT[:JACK_PERIOD[:ROLES]] | audio:SOURCES ...] (the period 256
+# unless given: 256, 512 or 1024 frames; ROLES sets SONICVERSE_RT_NICE for the run: the threads that take nice values
+# where real time is refused, e.g. callback,server or none); one JSON line per run in
 # $OUT/bench_vr.jsonl (audio:N runs `bench audio --sources N` into $OUT/bench_audio.jsonl).
 cd "$(dirname "$0")/../.."
 # It unpacks packages into / and writes /etc/ld.so.conf.d, so it runs only when asked for by name on a lent
@@ -42,7 +43,8 @@ python3 -c "from app.audio_rt import sched; print('SCHED_FIFO allowed:', sched.f
 python3 -c "import sounddevice as sd; print(sd.get_portaudio_version()[1])" || exit 5
 T0=$SECONDS
 for r in $RUNS; do
-  t=${r%%:*}; a=${r#*:}; per=256
+  t=${r%%:*}; a=${r#*:}; per=256; unset SONICVERSE_RT_NICE
+  case $a in *:*:*) export SONICVERSE_RT_NICE=${a##*:}; a=${a%:*};; esac  # a fourth field: the threads niced
   case $a in *:*) per=${a#*:}; a=${a%%:*};; esac
   if [ "$t" = audio ]; then  # the renderer alone, offline: compares a core's speed with this VM's
     python3 -m app.cli bench audio --sources "$a" --seconds 8 --json | tee -a "$OUT/bench_audio.jsonl" | cut -c1-600
@@ -51,7 +53,7 @@ for r in $RUNS; do
   timeout $((SECS + 120)) python3 -m app.cli bench vr --task "$t" --agent "$a" --audio-seconds "$SECS" \
     --jack-period "$per" > /tmp/vr.json 2> /tmp/vr.err
   rc=$?
-  echo "$t $a $per rc $rc at $((SECONDS - T0)) s"; tail -3 /tmp/vr.err | cut -c1-300
+  echo "$t $a $per nice=${SONICVERSE_RT_NICE-all} rc $rc at $((SECONDS - T0)) s"; tail -3 /tmp/vr.err | cut -c1-300
   python3 - "$rc" <<'PY' | tee -a "$OUT/bench_vr.jsonl"
 import json, sys
 try:
@@ -59,7 +61,8 @@ try:
 except (OSError, ValueError):
     print(json.dumps({"rc": int(sys.argv[1]), "error": open("/tmp/vr.err").read()[-400:]})); sys.exit()
 p = b.get("platform", {})
-print(json.dumps({k: b.get(k) for k in ("task", "agent", "jack_period", "loop_fps", "xruns", "xrun_blocks", "cycle_blocks",
+import os
+print(json.dumps({"rt_nice": os.environ.get("SONICVERSE_RT_NICE", "all")} | {k: b.get(k) for k in ("task", "agent", "jack_period", "loop_fps", "xruns", "xrun_blocks", "cycle_blocks",
                                           "callbacks", "xrun_at_s",
                                           "xrun_callback_ms", "callback_ms", "callback_errors")}
                  | {k: p.get(k) for k in ("supervisor_scheduling", "callback_scheduling", "jack_scheduling",
