@@ -428,7 +428,7 @@ def test_a_live_window_without_the_stream_is_an_error_not_zero_xruns(private_jac
 def test_where_real_time_is_refused_each_thread_takes_the_highest_time_shared_priority(private_jack, monkeypatch):
     """Some machines refuse SCHED_FIFO even to root (the lent machines in README's "Benchmarks"): then the JACK
     server's threads and the callback run at nice -20, the supervisor at -15 and the robots at -10, and the news says
-    so; the platform probe says it cannot run. Where a nice value is refused as well, the news says that."""
+    so; the platform probe runs time-shared too. Where a nice value is refused as well, the news says that."""
     import os
     import threading
 
@@ -481,9 +481,18 @@ def test_where_real_time_is_refused_each_thread_takes_the_highest_time_shared_pr
         sched.nice_roles()
     monkeypatch.delenv("SONICVERSE_RT_NICE")
     assert not sched.fifo_allowed()
-    res = PlatformProbe(0.3).result()  # cyclictest cannot run there: said, not a probe that saw no stall
-    assert res["why"].startswith("no platform probe: cyclictest needs a real-time priority") and \
-        res["wakeup_ms_max"] is None and res["probe_scheduling"] is None, res
+    # cyclictest cannot run there (it takes real time whatever its --policy): a pinned Python process per CPU sleeps
+    # to the same 1 ms deadlines, at nice -20 where allowed; its rows go through the same attribution
+    monkeypatch.setattr(sched, "fifo_allowed", lambda: False)
+    probe = PlatformProbe(1.0)
+    res = probe.result()
+    assert res["probe_scheduling"] == \
+        f"time-shared, nice {-20 if may else 0} (SCHED_FIFO refused): a Python thread per CPU", res
+    assert "why" not in res and 0.9 * os.cpu_count() * 1000 <= res["wakeups"] <= os.cpu_count() * 1000, res
+    assert len(res["wakeup_ms_max"]) == os.cpu_count() and all(0 <= m < 1000 for m in res["wakeup_ms_max"])
+    assert 0 <= probe.samples[:, 0].min() and probe.samples[:, 0].max() < 1.0
+    # sleeping to a deadline in Python is late by tens of microseconds, not by a stall, on most wake-ups
+    assert np.median(probe.samples[:, 1]) < 0.5, np.percentile(probe.samples[:, 1], [50, 99, 100])
 
 
 def test_cli_devices_and_loopback_test(jack, cli):
