@@ -312,17 +312,37 @@ def test_fdl_mac():
 
 
 def test_portal_curve():
+    """The directional share's gains: sqrt(beta) times the direction's level over the bins; with the diffuse share
+    at sqrt(1 - beta), each ear's power per band is beta ratio^2 + 1 - beta (the two ears' mean: 1)."""
     ratio = np.abs(RNG.normal(size=(2, 9))) + 0.1
     ratio /= np.sqrt(np.mean(ratio ** 2, axis=0, keepdims=True))
     bins = np.abs(RNG.normal(size=(9, 33)))
     bins /= bins.sum(0, keepdims=True)
-    out = np.empty((2, 33), np.complex64)
+    out = np.empty((2, 33), np.complex64)  # PortalEars.gains: real values in the spectra's type
+    eye = np.eye(9, 33)  # bins that are the bands themselves
     for beta in (0.0, 0.3, 1.0):
         LK.portal_curve(ratio, beta, bins, out)
-        np.testing.assert_allclose(out.real, np.sqrt(beta * ratio ** 2 + 1 - beta) @ bins, rtol=1e-5)
+        np.testing.assert_allclose(out.real, np.sqrt(beta) * ratio @ bins, rtol=1e-5, atol=1e-7)
         assert np.all(out.imag == 0)
-    LK.portal_curve(ratio, 0.0, bins, out)
-    np.testing.assert_allclose(out.real, 1.0, rtol=1e-5)  # all diffuse: no change
+        band = np.empty((2, 33), np.complex64)
+        LK.portal_curve(ratio, beta, eye, band)
+        power = band[:, :9].real ** 2 + (1 - beta)
+        np.testing.assert_allclose(power, beta * ratio ** 2 + 1 - beta, rtol=1e-5)
+        np.testing.assert_allclose(power.mean(0), 1.0, rtol=1e-5)
+
+
+def test_delayed_add():
+    """Twin: each ear's block delayed by its own whole samples, the delay ramped linearly from d0 to d1."""
+    B, D = 16, 8
+    hist = RNG.normal(size=(2, D + B))
+    d0, d1 = np.array([0, 5]), np.array([3, 5])
+    out = np.ones((2, B))
+    LK.delayed_add(hist, d0, d1, out)
+    r = (np.arange(B) + 1) / B
+    for e in range(2):
+        want = 1 + (1 - r) * hist[e, D - d0[e]:D - d0[e] + B] + r * hist[e, D - d1[e]:D - d1[e] + B]
+        np.testing.assert_allclose(out[e], want, rtol=1e-12)
+    np.testing.assert_allclose(out[1], 1 + hist[1, D - 5:D - 5 + B])  # a constant delay: the block delayed
 
 
 @pytest.mark.parametrize("spec", ["builtin:l-room", "builtin:two-rooms?door=open"])

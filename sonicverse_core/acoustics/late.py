@@ -8,10 +8,12 @@ import math
 
 import numpy as np
 
+from sonicverse_core.acoustics.direct import HEAD_RADIUS
 from sonicverse_core.acoustics.kernels import farther, rows_moved
 from sonicverse_core.acoustics.late_kernels import (buildup_filter, groups_sending, late_groups, late_send, mix_ramped,
                                                   portal_curve)
 from sonicverse_core.acoustics.probes import SPEED_OF_SOUND
+from sonicverse_core.acoustics.reverb import PortalEars
 from sonicverse_core.acoustics.sources import grown
 from sonicverse_core.acoustics.state import PerSource
 from sonicverse_core.scene.materials import BANDS
@@ -35,7 +37,7 @@ class NeighbourTail:
     __slots__ = ("conv", "ears", "portal", "portal_idx", "w", "shapes", "room", "live", "key", "at")
 
     def __init__(self, conv, block: int):
-        self.conv, self.ears = conv, np.ones((2, block + 1), np.complex64)
+        self.conv, self.ears = conv, PortalEars(block)
         self.portal, self.portal_idx, self.w, self.shapes, self.room, self.live = None, -1, None, None, -1, False
         self.key, self.at = None, None
 
@@ -193,15 +195,19 @@ class LateReverb:
             if self.modal:  # the coupled rooms' slowest mode: its own input (its shapes differ per group) and
                 # its own noise (tails of other seeds: the two add in energy, not in amplitude)
                 st.conv_slow = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=SLOW_SEED + seed,
-                                                 probe_edts=self.tail_edt,
-                                                 groups=self.groups, **self.tail_colour())
-                st.ears = np.ones((2, cfg.block + 1), np.complex64)  # the slow tail's direction
+                                                 probe_edts=self.tail_edt, groups=self.groups,
+                                                 direct=cfg.output != "mono", direct_seed=seed,
+                                                 **self.tail_colour())
+                st.ears = PortalEars(cfg.block)  # the slow tail's direction
                 # rooms beyond two: the modes that ring in yet other rooms, each heard from its doorway. Their
-                # tails are those rooms' own, so the own-room noise serves (the same partitions, cached)
+                # tails are those rooms' own, so the own-room noise serves (the same partitions, cached). The
+                # directional channels are shared with the slow tail's: each plays another room's tail
                 extra = min(cfg.neighbour_tails, len(self.r.coupling.rooms) - 2)
                 st.more = [NeighbourTail(ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed,
                                                            probe_edts=self.tail_edt, groups=self.groups,
-                                                           **self.tail_colour()), cfg.block)
+                                                           direct=cfg.output != "mono", direct_seed=seed,
+                                                           **self.tail_colour()),
+                                         cfg.block)
                            for _ in range(max(extra, 0))]
         return st
 
@@ -364,10 +370,11 @@ class LateReverb:
             np.add(out, fdn.process(st.mono, out=st.fdn_out), out=out)
 
     def _portal_ears(self, st, lis):
-        """A tail's per-ear gains when it rings in another room (``st``: the late state for the slow tail, or a
-        :class:`NeighbourTail`): the level differences of the direction it enters from (the doorway,
-        ``_modal_mix``), for the head as it is turned now (a table row per 5 degrees of azimuth; the gains are made
-        again only when the row changes: nothing allocated while the head turns)."""
+        """A tail's direction when it rings in another room (``st``: the late state for the slow tail, or a
+        :class:`NeighbourTail`): the share ``beta`` arriving from where it enters (the doorway, ``_modal_mix``), with
+        that direction's level differences and interaural delay for the head as it is turned now (a table row per
+        5 degrees of azimuth; the gains are made again only when the row changes: nothing allocated while the head
+        turns); a :class:`PortalEars`."""
         portal = st.portal
         if portal is None:
             return None
@@ -376,7 +383,10 @@ class LateReverb:
         az = math.degrees(math.atan2(py - p[1], px - p[0])) - lis.yaw
         idx = int(round(az / PORTAL_STEP)) % len(self._portal_table)
         if idx != st.portal_idx:
-            portal_curve(self._portal_table[idx], beta, self._portal_bins, st.ears)
+            ears = st.ears
+            portal_curve(self._portal_table[idx], beta, self._portal_bins, ears.gains)
+            ears.diffuse = math.sqrt(max(1.0 - beta, 0.0))
+            ears.delays[:] = self._portal_delays[idx]
             st.portal_idx = idx
         return st.ears
 
@@ -402,6 +412,11 @@ class LateReverb:
             ratio = np.repeat(np.stack([np.sqrt(1 + s), np.sqrt(np.maximum(1 - s, 0.0))], 1)[:, :, None],
                               len(BANDS), axis=2)
         ratio /= np.sqrt(np.mean(ratio ** 2, axis=1, keepdims=True))
+        # the interaural delay of each azimuth on the far ear, in samples: Woodworth's, with the stereo panner's head
+        # (the direct sound's ITD without HRTFs; KEMAR's largest, 0.65-0.7 ms, is about its 0.66 ms)
+        lat = np.arcsin(np.clip(np.sin(az), -1.0, 1.0))  # the lateral angle, + to the left (+y at yaw 0)
+        itd = HEAD_RADIUS / SPEED_OF_SOUND * (lat + np.sin(lat)) * self.r.cfg.sample_rate
+        self._portal_delays = np.rint(np.stack([np.maximum(-itd, 0.0), np.maximum(itd, 0.0)], 1)).astype(np.int64)
         self._portal_table = ratio
         fb = np.fft.rfftfreq(2 * self.r.cfg.block, 1 / self.r.cfg.sample_rate)
         lf = np.log2(np.maximum(fb, BANDS[0]))

@@ -212,17 +212,30 @@ def fdl_fill(X, curves, live, shaped, out):
 
 @njit(**_opts)
 def portal_curve(ratio, beta, bins, out):
-    """Per-ear gains over FFT bins for a tail part of which ``beta`` arrives from one direction: out[e, f] =
-    sum_b bins[b, f] sqrt(beta ratio[e, b]^2 + 1 - beta) (ratio (2, B): that direction's per-band ear gains over
-    the diffuse field's, normalised so that the two ears' mean power is 1; bins (B, F) the bands' interpolation
-    weights). The mean power of the two ears stays 1 in every band: a direction, no change of level."""
+    """The directional share's per-ear gains over FFT bins for a tail of which ``beta`` arrives from one direction:
+    out[e, f] = sqrt(beta) sum_b bins[b, f] ratio[e, b] (ratio (2, B): that direction's per-band ear gains over the
+    diffuse field's, normalised so that the two ears' mean power is 1; bins (B, F) the bands' interpolation
+    weights). With the ears' own tails at sqrt(1 - beta), each ear's power per band is beta ratio^2 + 1 - beta, and
+    the two ears' mean stays 1 in every band: a direction, no change of level."""
     E, F = out.shape
     nb = ratio.shape[1]
+    a = np.sqrt(beta)
     for e in range(E):
         for f in range(F):
             g = 0.0
             for b in range(nb):
-                w = bins[b, f]
-                if w != 0.0:
-                    g += w * np.sqrt(beta * ratio[e, b] * ratio[e, b] + 1.0 - beta)
-            out[e, f] = g
+                g += bins[b, f] * ratio[e, b]
+            out[e, f] = a * g
+
+
+@njit(**_opts)
+def delayed_add(hist, d0, d1, out):
+    """out[e, t] += (1 - r) hist[e, D + t - d0[e]] + r hist[e, D + t - d1[e]], r = (t + 1) / B, D = hist's length
+    - B: this block (hist's last B samples) delayed per ear, the delay ramped from d0 to d1 over the block."""
+    E, B = out.shape
+    D = hist.shape[1] - B
+    for e in range(E):
+        a, b = D - d0[e], D - d1[e]
+        for t in range(B):
+            r = (t + 1) / B
+            out[e, t] += (1.0 - r) * hist[e, a + t] + r * hist[e, b + t]

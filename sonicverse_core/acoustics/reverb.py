@@ -162,6 +162,45 @@ def _partitions(rt60: tuple, sample_rate: int, B: int, P: int, seed: int, gains:
     return H
 
 
+DIRECT_SEED = 77_777  # the third, directional channel's noise: independent of every tail's two ears
+
+
+@lru_cache(maxsize=64)
+def _direct_partitions(rt60: tuple, sample_rate: int, B: int, P: int, seed: int, gains: tuple | None,
+                       coherence: tuple | None, edt: tuple | None = None) -> np.ndarray:
+    """A third channel for a tail of :func:`_partitions`' parameters: the same decay and colouring (the two ears'
+    mean), noise independent of both ears; spectra (2P, 1, B + 1) complex64, read-only. What a tail's directional
+    share is made of (:meth:`ConvolutionReverb.process`'s ``ears``): mixed into both ears with each ear's gain and
+    delay, it is coherent between them, with the interaural delay of its direction."""
+    g = None if gains is None else np.repeat(np.array(gains).reshape(2, -1).mean(0, keepdims=True), 2, axis=0)
+    t = synth_tail(np.array(rt60), sample_rate, seed=seed + DIRECT_SEED, gains=g,
+                   coherence=None if coherence is None else np.array(coherence),
+                   edt=None if edt is None else np.array(edt))[:1, : P * B]
+    pad = np.zeros((1, P * B))
+    pad[:, : t.shape[1]] = t
+    parts = np.fft.rfft(pad.reshape(1, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, 1, nf)
+    H = np.concatenate([parts[::-1], parts[::-1]]).astype(np.complex64)
+    H.setflags(write=False)
+    return H
+
+
+class PortalEars:
+    """The direction a tail arrives from, as :meth:`ConvolutionReverb.process` applies it: the diffuse share's
+    amplitude (``diffuse``, sqrt(1 - beta), on both ears' own tails), the directional share's per-ear gains over
+    the FFT's bins (``gains`` (2, block + 1): sqrt(beta) times that direction's level over the diffuse field's) and
+    its per-ear delays in samples (``delays`` (2,): the interaural delay, on the far ear)."""
+
+    __slots__ = ("diffuse", "gains", "delays")
+
+    def __init__(self, block: int):
+        self.diffuse = 1.0
+        self.gains = np.zeros((2, block + 1), np.complex64)  # real values; the spectra's type (no cast per block)
+        self.delays = np.zeros(2, np.int64)
+
+
+MAX_ITD_SAMPLES_S = 0.001  # s: the directional share's delay line (Woodworth's largest ITD is 0.66 ms)
+
+
 class ConvolutionReverb:
     """Uniformly partitioned overlap-save convolution (partitions of one block) with a synthesised tail per probe;
     the outputs of the probes around the listener are mixed with ramped weights. Exact per-band decay, no
@@ -171,7 +210,7 @@ class ConvolutionReverb:
 
     def __init__(self, sample_rate: int, block: int, probe_rt60s, seconds: float = 3.0, seed: int = 0,
                  gains: np.ndarray | None = None, coherence: np.ndarray | None = None, groups: int = 1,
-                 probe_edts=None):
+                 probe_edts=None, direct: bool = False, direct_seed: int | None = None):
         from sonicverse_core.acoustics.fft import irfft_plan, rfft_plan
 
         self.B = B = block
@@ -184,6 +223,11 @@ class ConvolutionReverb:
         edts = [None] * len(probe_rt60s) if probe_edts is None else probe_edts
         self.H = [_partitions(key(rt), sample_rate, B, P, seed + k, key(gains), key(coherence), key(e))
                   for k, (rt, e) in enumerate(zip(probe_rt60s, edts))]
+        # ``direct``: a third channel per tail, for a share that arrives from one direction (``process``'s ears);
+        # ``direct_seed`` (default ``seed``): reverbs that never play the same tail at once may share these
+        ds = seed if direct_seed is None else direct_seed
+        self.Hd = [_direct_partitions(key(rt), sample_rate, B, P, ds + k, key(gains), key(coherence), key(e))
+                   for k, (rt, e) in enumerate(zip(probe_rt60s, edts))] if direct else None
         self.fdl = np.zeros((P, self.nf), np.complex64)
         self.t = 0
         self.G = groups
@@ -193,6 +237,14 @@ class ConvolutionReverb:
         self._fwd, self._X = rfft_plan(self._frame)
         self._Y = np.zeros((2, self.nf), np.complex64)
         self._inv, self._y = irfft_plan(self._Y, 2 * B)
+        if direct:  # the directional channel's spectrum, its two ears', their samples, and the ears' delay line
+            self._M = np.zeros((1, self.nf), np.complex64)
+            self._Yd = np.zeros((2, self.nf), np.complex64)
+            self._inv_d, self._yd = irfft_plan(self._Yd, 2 * B)
+            self._dacc = np.zeros((2, B))
+            self.D = int(np.ceil(MAX_ITD_SAMPLES_S * sample_rate))
+            self._dhist = np.zeros((2, self.D + B))
+            self._dlast = np.zeros(2, np.int64)
         self._live = np.zeros(groups, bool)
         self._curves = np.ones((groups, self.nf), np.float32)
         self._shaped, self._shapes_key = False, None
@@ -200,15 +252,19 @@ class ConvolutionReverb:
         self._w_set = False
         # compile (or load) the per-block kernels now: one first called in the first block with sound would stall a
         # real-time caller for as long as numba takes to compile it (the stream's watchdog calls that a lost device)
-        from sonicverse_core.acoustics.late_kernels import fdl_fill, live_rows
+        from sonicverse_core.acoustics.late_kernels import delayed_add, fdl_fill, live_rows
 
         live_rows(self._frame[:, B:], self._frame[:, :B], self._live)
         fdl_fill(self._X, self._curves, self._live, False, self.fdl[0])
+        if direct:
+            delayed_add(self._dhist, self._dlast, self._dlast, np.zeros((2, B)))
 
     def reset(self) -> None:
         """Forget the input history (the renderer's recovery from a non-finite value)."""
         self.fdl[:] = 0
         self._frame[:] = 0.0
+        if self.Hd is not None:
+            self._dhist[:] = 0.0
 
     def _set_shapes(self, shapes) -> None:
         """Per-group per-band amplitudes (G, 9) -> smooth curves over the FFT bins (linear in log frequency between
@@ -228,10 +284,13 @@ class ConvolutionReverb:
         (the coupling of the room the group's sources are in); weights (n_probes,) summing to 1 -> (2, block)
         float64, added into ``out`` when given, scaled by the late level ramped from level[0] to level[1].
         ``shapes_key``: a value that changes whenever ``shapes`` does (the curves are rebuilt then; without a key,
-        every block). ``ears`` (2, block + 1): per-ear gains over the FFT's bins applied to the tail (smooth in
-        frequency: a direction's level differences). With ``out`` and a key, a block allocates nothing."""
+        every block). ``ears``: where part of the tail arrives from one direction (a :class:`PortalEars`; a
+        reverb made with ``direct`` only): the ears' own tails at its ``diffuse`` amplitude, plus the third channel
+        with each ear's gains over the bins and each ear's delay (ramped from the last block's over this one: the
+        head turns without a click). The share is coherent between the ears and lags in the far one, as sound
+        through a doorway does. With ``out`` and a key, a block allocates nothing."""
         from sonicverse_core.acoustics.kernels import shift_left
-        from sonicverse_core.acoustics.late_kernels import fdl_fill, fdl_mac, live_rows, mix_ramped
+        from sonicverse_core.acoustics.late_kernels import delayed_add, fdl_fill, fdl_mac, live_rows, mix_ramped
 
         B, P = self.B, self.P
         x = x.reshape(-1, B)
@@ -259,15 +318,32 @@ class ConvolutionReverb:
             self.w[:] = weights
             self._w_set = True
         scale = 1.0 / (2 * B)
+        if ears is not None:
+            if self.Hd is None:
+                raise ValueError("a direction needs a reverb made with direct=True")
+            self._dacc.fill(0.0)
         for k in range(len(self.H)):
             w0, w1 = float(self.w[k]), float(weights[k])
             if w0 <= 1e-4 and w1 <= 1e-4:
                 continue
             fdl_mac(self.fdl, self.H[k], off, self._Y)
+            diffuse = 1.0
             if ears is not None:
-                np.multiply(self._Y, ears, out=self._Y)
+                diffuse = ears.diffuse
+                fdl_mac(self.fdl, self.Hd[k], off, self._M)
+                np.multiply(self._M, ears.gains, out=self._Yd)
+                self._inv_d.run()
+                mix_ramped(self._yd, w0, w1, level[0], level[1], scale, self._dacc)
             self._inv.run()
-            mix_ramped(self._y, w0, w1, level[0], level[1], scale, out)
+            mix_ramped(self._y, w0, w1, level[0], level[1], scale * diffuse, out)
+        if self.Hd is not None:  # the directional share through its delay line (silence in it when no direction)
+            if ears is None:
+                self._dacc.fill(0.0)
+            shift_left(self._dhist, B)
+            self._dhist[:, self.D:] = self._dacc
+            d1 = self._dlast if ears is None else ears.delays
+            delayed_add(self._dhist, self._dlast, d1, out)
+            self._dlast[:] = d1
         self.w[:] = weights
         self.t += 1
         return out
