@@ -275,12 +275,13 @@ def _map_input(mp, device=None):
     return x.float() * (1.0 / 255)
 
 
-def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = None, egomap=None, allowed=None):
+def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = None, egomap=None, allowed=None,
+                 temperature: float = 1.0):
     """(action, next hidden state): the mean / most likely action, or with ``rng`` (discrete head) one drawn from
-    the policy's distribution; a stop (tasks that have one) only when it is the most likely action, since a stop drawn
-    by chance would end the episode. ``egomap``: the (C, H, W) uint8 map of a policy that reads one. ``allowed``
-    (discrete head): a bool per action; the others' probabilities are set to 0 before drawing or taking the most
-    likely one, unless that leaves none."""
+    the policy's distribution (raised to 1 / ``temperature``); a stop (tasks that have one) only when it is the most
+    likely action, since a stop drawn by chance would end the episode. ``egomap``: the (C, H, W) uint8 map of a
+    policy that reads one. ``allowed`` (discrete head): a bool per action; the others' probabilities are set to 0
+    before drawing or taking the most likely one, unless that leaves none."""
     dev = model.device
     kw = {} if egomap is None else {"egomap": _map_input(torch.from_numpy(np.ascontiguousarray(egomap))[None, None],
                                                          dev)}
@@ -296,6 +297,9 @@ def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = N
         if rng is None or stop[best]:  # the stop ends the episode: taken only when it is the most likely action
             return table[best], h
         prob = np.where(stop, 0.0, prob)
+        if temperature != 1.0:
+            prob = prob / prob.max()  # 1 at the most likely action: no underflow of the power
+            prob = prob ** (1.0 / temperature)
         return table[int(rng.choice(len(prob), p=prob / prob.sum()))], h
     return model.act(out)[0, 0].cpu().numpy(), h
 

@@ -53,6 +53,7 @@ class AVNavAgent(Agent):
         check_trained_on(self.checkpoint, self.meta, task)
         self.size = self.model.cfg.depth_hw[0]
         self.sample = True  # draw from the policy (discrete head, the Generator); False: the most likely action
+        self.temperature = float(self.meta.get("temperature", 1.0))  # an ensemble's acting setting (its meta)
 
     def env_kwargs(self) -> dict:
         from agents.imitation import sensors_for
@@ -74,7 +75,7 @@ class AVNavAgent(Agent):
 
         mp = self.ego.observe(obs, info) if self.ego is not None else None
         a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None, mp,
-                                 floor_shield(self.model, self.ego, self.shield_s))
+                                 floor_shield(self.model, self.ego, self.shield_s), self.temperature)
         self.start = False
         return np.clip(a, -1, 1).astype(np.float32)
 

@@ -259,10 +259,10 @@ class PolicyEnsemble(nn.Module):
     """Several AV-Nav policies with one configuration (sensors, map, discrete actions) acting as one: each keeps its
     own recurrent state, and the ensemble's action distribution is the mean of theirs (its output is the log of that
     mean, so a softmax of it, or its argmax, is what :func:`agents.imitation._policy_step` reads). For acting only:
-    it does not train. It is an experiment that did not pay: on the 30 test episodes of speaker following, two
-    members (seeds 0 and 1) kept the band 0.749 of the time and three (seeds 0-2) 0.695, against 0.734 and 0.715
-    alone, all within the noise (the paired 95% intervals span zero), so no ensemble ships (README, "Learned
-    agents")."""
+    it does not train. Session 34's ensembles of the teacher-only recipe did not pay (on the 30 test episodes of
+    speaker following, two members kept the band 0.749 of the time and three 0.695, against 0.734 and 0.715 alone,
+    all within the noise); session 36's two seeds trained with ``--learner drawn`` ship as the speaker follower
+    (0.756; its better member alone 0.746 on the sound before; README, "Learned agents")."""
 
     arch = "ensemble"
 
@@ -311,10 +311,11 @@ def _config_diff(a: dict, b: dict) -> str:
     return ", ".join(f"{k} {a.get(k)!r} vs {b.get(k)!r}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k))
 
 
-def write_ensemble(paths, out, half: bool = True, task: str | None = None) -> dict:
+def write_ensemble(paths, out, half: bool = True, task: str | None = None, temperature: float = 1.0) -> dict:
     """One checkpoint holding the policies in ``paths`` (AV-Nav checkpoints trained on one task, ``task`` when
-    given, with one configuration) as a :class:`PolicyEnsemble`; ``half`` stores float16 weights. Returns its
-    meta."""
+    given, with one configuration) as a :class:`PolicyEnsemble`; ``half`` stores float16 weights; ``temperature``
+    (in its meta): the player draws from the mean distribution raised to 1 / temperature (1: as it is; below 1,
+    nearer the most likely action). Returns its meta."""
     from pathlib import Path
 
     from sonicverse_core.errors import ConfigError
@@ -332,7 +333,9 @@ def write_ensemble(paths, out, half: bool = True, task: str | None = None) -> di
         state = {k: (v.half() if half and v.is_floating_point() else v).detach().cpu()
                  for k, v in m.state_dict().items()}
         members.append({"arch": "av-nav", "config": asdict(m.cfg), "state": state, "meta": mt})
-    meta = {"recipe": "ensemble", "config": {"task": tasks.pop()},
+    if not 0.05 <= temperature <= 10.0:
+        raise ConfigError(f"temperature {temperature}: give 0.05 to 10")
+    meta = {"recipe": "ensemble", "config": {"task": tasks.pop()}, "temperature": float(temperature),
             "members": [{"source": str(Path(p)), "seed": (mt.get("config") or {}).get("seed"),
                          "iteration": mt.get("iteration")} for p, mt in zip(paths, metas)]}
     Path(out).parent.mkdir(parents=True, exist_ok=True)

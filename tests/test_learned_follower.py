@@ -252,3 +252,60 @@ def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli
 
     with pytest.raises(ConfigError, match="ensemble"):
         train_ppo(PPOConfig(task="AudioGoal", frames=16, envs=1, init=res["checkpoint"]), tmp_path / "p")
+
+
+def test_an_ensembles_temperature_sharpens_its_draw_and_lives_in_its_checkpoint(tmp_path, capsys):
+    """`train --ensemble ... --temperature T` stores T in the file's meta; the player (``av-nav``) reads it and
+    draws action k with probability p_k^(1/T) / sum_j p_j^(1/T): counted over 20,000 draws of a made-up
+    distribution (within 0.01). T = 1 draws as before; --temperature without --ensemble, or outside 0.05-10, is
+    refused in one line."""
+    from agents import make_agent
+    from agents.imitation import _policy_step
+    from agents.models import primitives_for
+    from app.cli import main
+
+    cfg = AVNavConfig(primitives=primitives_for(2))
+    paths = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        paths.append(tmp_path / f"m{seed}.pt")
+        save(AVNav(cfg).eval(), paths[-1], {"config": {"task": "SpeakerFollowing", "seed": seed}})
+    assert main(["train", "--task", "SpeakerFollowing", "--ensemble", *map(str, paths), "--temperature", "0.5",
+                 "--out", str(tmp_path / "e"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["temperature"] == 0.5
+    agent = make_agent("av-nav", np.random.default_rng(0), task="SpeakerFollowing",
+                       checkpoint=tmp_path / "e" / "best.pt")
+    assert agent.temperature == 0.5
+    # the draw itself, on a model whose distribution is made up
+    n = len(cfg.primitives)
+    p = np.linspace(1.0, 3.0, n) ** 2
+    p /= p.sum()
+
+    class Fixed(torch.nn.Module):
+        discrete, device = True, torch.device("cpu")
+        table = torch.tensor(np.c_[np.arange(n), np.zeros(n)], dtype=torch.float32)  # action k: (k, 0)
+
+        def forward(self, *a, **k):
+            return torch.log(torch.tensor(p))[None, None], None, None
+
+    obs = {"depth": np.zeros((64, 64, 1), np.float32), "spectrogram": np.zeros(cfg.spec_shape, np.float32),
+           "pose": np.zeros(4, np.float32)}
+    rng = np.random.default_rng(1)
+    for T in (1.0, 0.5):
+        counts = np.zeros(n)
+        for _ in range(20_000):
+            a, _ = _policy_step(Fixed(), obs, None, False, rng, temperature=T)
+            counts[int(a[0])] += 1
+        want = p ** (1 / T) / np.sum(p ** (1 / T))
+        assert np.abs(counts / counts.sum() - want).max() < 0.01, (T, counts / counts.sum(), want)
+
+    def refused(*argv) -> str:
+        assert main(list(argv)) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and err.startswith("sonicverse: error:"), err
+        return err
+
+    assert "give it with --ensemble" in refused("train", "--task", "SpeakerFollowing", "--temperature", "0.5",
+                                                 "--out", str(tmp_path / "x"))
+    refused("train", "--task", "SpeakerFollowing", "--ensemble", *map(str, paths), "--temperature", "0",
+            "--out", str(tmp_path / "y"))

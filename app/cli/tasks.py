@@ -44,6 +44,10 @@ def cmd_train(a) -> int:
 
     if a.ensemble:
         return _train_ensemble(a)
+    if a.temperature is not None:
+        from sonicverse_core.errors import ConfigError
+
+        raise ConfigError("--temperature is an ensemble's acting setting: give it with --ensemble")
     if a.teacher != "oracle" and not (a.map and a.recipe == "dagger" and a.task == "SpeakerFollowing"):
         raise ConfigError("--teacher scripted is for --recipe dagger --map --task SpeakerFollowing")
     if a.learner != "greedy" and a.recipe != "dagger":
@@ -153,8 +157,10 @@ def _train_ensemble(a) -> int:
     out = Path(a.out) / "best.pt"
     if out.exists():
         raise ConfigError(f"{out} exists: give another --out")
-    meta = write_ensemble(a.ensemble, out, half=True, task=a.task)
-    res = {"checkpoint": str(out), "members": meta["members"], "task": a.task, "bytes": out.stat().st_size}
+    meta = write_ensemble(a.ensemble, out, half=True, task=a.task,
+                          temperature=1.0 if a.temperature is None else a.temperature)
+    res = {"checkpoint": str(out), "members": meta["members"], "task": a.task, "temperature": meta["temperature"],
+           "bytes": out.stat().st_size}
     print(json.dumps(res) if a.json else res["checkpoint"])
     return 0
 
@@ -411,6 +417,9 @@ def add_task_commands(sub, bench_sub) -> None:
                    help="train nothing: join these av-nav checkpoints of --task (one configuration, e.g. the same "
                    "recipe from several --seed) into one policy acting on the mean of their action distributions, "
                    "written to --out/best.pt as float16")
+    t.add_argument("--temperature", type=A.number(0.05, 10), default=None,
+                   help="with --ensemble: the player draws from the mean distribution raised to 1 / T (below 1, "
+                   "nearer the most likely action; default 1)")
     t.add_argument("--seed", type=A.seed, default=0, help="seed (default: %(default)s)")
     t.add_argument("--out", default="out/train", type=A.out_dir, help="output folder (default: %(default)s)")
     t.add_argument("--resume", action="store_true", help="go on from --out's model.pt (to more --iterations)")
