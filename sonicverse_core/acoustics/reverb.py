@@ -154,9 +154,16 @@ def _partitions(rt60: tuple, sample_rate: int, B: int, P: int, seed: int, gains:
     t = synth_tail(np.array(rt60), sample_rate, seed=seed, gains=g,
                    coherence=None if coherence is None else np.array(coherence),
                    edt=None if edt is None else np.array(edt))[:, : P * B]
-    pad = np.zeros((2, P * B))
+    return _spectra(t, P, B)
+
+
+def _spectra(t: np.ndarray, P: int, B: int) -> np.ndarray:
+    """A tail (C, n <= P B) cut into P partitions of B samples -> spectra (2P, C, B + 1) complex64, newest first and
+    doubled (the frequency-domain delay line never wraps), read-only."""
+    C = len(t)
+    pad = np.zeros((C, P * B))
     pad[:, : t.shape[1]] = t
-    parts = np.fft.rfft(pad.reshape(2, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, 2, nf)
+    parts = np.fft.rfft(pad.reshape(C, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, C, nf)
     H = np.concatenate([parts[::-1], parts[::-1]]).astype(np.complex64)
     H.setflags(write=False)
     return H
@@ -176,12 +183,7 @@ def _direct_partitions(rt60: tuple, sample_rate: int, B: int, P: int, seed: int,
     t = synth_tail(np.array(rt60), sample_rate, seed=seed + DIRECT_SEED, gains=g,
                    coherence=None if coherence is None else np.array(coherence),
                    edt=None if edt is None else np.array(edt))[:1, : P * B]
-    pad = np.zeros((1, P * B))
-    pad[:, : t.shape[1]] = t
-    parts = np.fft.rfft(pad.reshape(1, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, 1, nf)
-    H = np.concatenate([parts[::-1], parts[::-1]]).astype(np.complex64)
-    H.setflags(write=False)
-    return H
+    return _spectra(t, P, B)
 
 
 class PortalEars:
