@@ -200,7 +200,7 @@ class PortalEars:
         self.delays = np.zeros(2, np.int64)
 
 
-MAX_ITD_SAMPLES_S = 0.001  # s: the directional share's delay line (Woodworth's largest ITD is 0.66 ms)
+ITD_LINE_S = 0.001  # s: the directional share's delay line (Woodworth's largest ITD is 0.66 ms)
 
 
 class ConvolutionReverb:
@@ -244,7 +244,7 @@ class ConvolutionReverb:
             self._Yd = np.zeros((2, self.nf), np.complex64)
             self._inv_d, self._yd = irfft_plan(self._Yd, 2 * B)
             self._dacc = np.zeros((2, B))
-            self.D = int(np.ceil(MAX_ITD_SAMPLES_S * sample_rate))
+            self.D = int(np.ceil(ITD_LINE_S * sample_rate))
             self._dhist = np.zeros((2, self.D + B))
             self._dlast = np.zeros(2, np.int64)
         self._live = np.zeros(groups, bool)
