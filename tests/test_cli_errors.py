@@ -115,6 +115,16 @@ def test_every_bad_invocation_is_one_line_and_exit_2(bad, capsys):
     assert not failures, "\n".join(f"{a} -> {c}: {e}" for a, c, e in failures)
 
 
+def test_a_bad_scheduling_setting_is_one_line_before_any_audio_starts(monkeypatch, capsys):
+    """SONICVERSE_RT_NICE naming a thread the pipeline has not: refused before the JACK server or the stream starts
+    (in the callback it would be an error a block)."""
+    monkeypatch.setenv("SONICVERSE_RT_NICE", "callback,bogus")
+    assert main(["bench", "vr", "--task", "speaker-following", "--agent", "scripted", "--audio-seconds", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "sonicverse: error: SONICVERSE_RT_NICE: unknown thread role(s) ['bogus']; known: " \
+        "callback, supervisor, robots, server, or none", err
+
+
 def test_nothing_is_written_when_the_output_is_refused(bad, capsys):
     assert main(["render", "shoebox:6x4x3", "--sound", "sofa", "--source", "1,1,1", "--listener", "3,2,1.5",
                  "--out", str(bad / "out.mp3")]) == 2

@@ -63,6 +63,9 @@ class AudioEngine:
             return self.info
         cfg = self.cfg
         thread = cfg.mode == "thread"
+        from app.audio_rt.sched import nice_roles
+
+        nice_roles()  # a bad SONICVERSE_RT_NICE is a ConfigError here, not an error in every callback there
         keep_heap()  # this process runs the frame loop: its freed memory must not stall the audio (heap.py)
         self._block = SharedBlock(self.layout.size, private=thread)
         self.sh = Shared(self.layout, self._block.buf, self.n_listeners)

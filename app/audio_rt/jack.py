@@ -21,6 +21,9 @@ class JackServer:
         """``realtime`` False: the server runs time-shared (``jackd --no-realtime``), as it does on a machine that
         refuses it real time; its time-shared threads then get nice -20 where allowed. :attr:`scheduling` says what
         its threads run at."""
+        from app.audio_rt.sched import nice_roles
+
+        nice_roles()  # a bad SONICVERSE_RT_NICE: a ConfigError before any server starts
         self.name = name
         self.scheduling = None
         exe = shutil.which("jackd")
