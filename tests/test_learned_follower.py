@@ -258,9 +258,9 @@ def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli
 
 def test_an_ensembles_temperature_sharpens_its_draw_and_lives_in_its_checkpoint(tmp_path, capsys):
     """`train --ensemble ... --temperature T` stores T in the file's meta; the player (``av-nav``) reads it and
-    draws action k with probability p_k^(1/T) / sum_j p_j^(1/T): counted over 20,000 draws of a made-up
-    distribution (within 0.01). T = 1 draws as before; --temperature without --ensemble, or outside 0.05-10, is
-    refused in one line."""
+    draws action k with probability p_k^(1/T) / sum_j p_j^(1/T): counted over 8,000 draws of a made-up
+    distribution (within 0.015: over 4 standard errors). T = 1 draws as before; --temperature without
+    --ensemble, or outside 0.05-10, is refused in one line."""
     from agents import make_agent
     from agents.imitation import _policy_step
     from agents.models import primitives_for
@@ -295,11 +295,11 @@ def test_an_ensembles_temperature_sharpens_its_draw_and_lives_in_its_checkpoint(
     rng = np.random.default_rng(1)
     for T in (1.0, 0.5):
         counts = np.zeros(n)
-        for _ in range(20_000):
+        for _ in range(8_000):
             a, _ = _policy_step(Fixed(), obs, None, False, rng, temperature=T)
             counts[int(a[0])] += 1
         want = p ** (1 / T) / np.sum(p ** (1 / T))
-        assert np.abs(counts / counts.sum() - want).max() < 0.01, (T, counts / counts.sum(), want)
+        assert np.abs(counts / counts.sum() - want).max() < 0.015, (T, counts / counts.sum(), want)
 
     def refused(*argv) -> str:
         assert main(list(argv)) == 2

@@ -332,8 +332,9 @@ def _hall_late_ild(yaw: float, neighbour_tails: int = 1) -> tuple:
 def test_a_neighbours_tail_comes_from_its_doorway():
     """The east room's tail comes through the east doorway's jamb (7.85, 2.35): with that jamb 90 degrees to the
     left the hall's late part is louder in the left ear than with it 90 degrees to the right, by 3 dB or more
-    (measured 4.2 dB; 4.4 dB before the directional share had its own channel). The west doorway lies the other way: with the slowest mode alone heard apart
-    (``neighbour_tails=0``) the same difference pointed to it (-7.3 dB) and the late part was 6.5 dB weaker."""
+    (measured 4.2 dB; 4.4 dB before the directional share had its own channel). The west doorway lies the other
+    way: with the slowest mode alone heard apart (``neighbour_tails=0``) the same difference pointed to it (-7.3 dB)
+    and the late part was 6.5 dB weaker."""
     door = np.degrees(np.arctan2(2.45 - 3.4, 8.0 - 6.0))
     left, r = _hall_late_ild(door - 90.0)
     right, _ = _hall_late_ild(door + 90.0)

@@ -31,8 +31,8 @@ class JackServer:
             raise DependencyError("jackd not found: install the Debian package jackd2 (scripts/install-system.sh)")
         guard = shutil.which("setpriv")  # util-linux (essential on Debian)
         self.cmd = ([guard, "--pdeathsig", "TERM"] if guard else []) + [
-            exe, "-n", name, *([] if realtime else ["--no-realtime"]), "-d", "dummy", "-r", str(rate), "-p", str(period), "-P", str(playback), "-C",
-            str(capture)]
+            exe, "-n", name, *([] if realtime else ["--no-realtime"]), "-d", "dummy", "-r", str(rate), "-p",
+            str(period), "-P", str(playback), "-C", str(capture)]
         self.proc = None
         self.start()
 

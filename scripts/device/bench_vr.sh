@@ -55,14 +55,14 @@ for r in $RUNS; do
   rc=$?
   echo "$t $a $per nice=${SONICVERSE_RT_NICE-all} rc $rc at $((SECONDS - T0)) s"; tail -3 /tmp/vr.err | cut -c1-300
   python3 - "$rc" <<'PY' | tee -a "$OUT/bench_vr.jsonl"
-import json, sys
+import json, os, sys
 try:
     b = json.load(open("/tmp/vr.json"))
 except (OSError, ValueError):
     print(json.dumps({"rc": int(sys.argv[1]), "error": open("/tmp/vr.err").read()[-400:]})); sys.exit()
 p = b.get("platform", {})
-import os
-print(json.dumps({"rt_nice": os.environ.get("SONICVERSE_RT_NICE", "all")} | {k: b.get(k) for k in ("task", "agent", "jack_period", "loop_fps", "xruns", "xrun_blocks", "cycle_blocks",
+print(json.dumps({"rt_nice": os.environ.get("SONICVERSE_RT_NICE", "all")}
+                 | {k: b.get(k) for k in ("task", "agent", "jack_period", "loop_fps", "xruns", "xrun_blocks", "cycle_blocks",
                                           "callbacks", "xrun_at_s",
                                           "xrun_callback_ms", "callback_ms", "callback_errors")}
                  | {k: p.get(k) for k in ("supervisor_scheduling", "callback_scheduling", "jack_scheduling",
