@@ -3,8 +3,9 @@ time-shared priority it allows (a negative nice value), and news of which.
 
 Some machines refuse SCHED_FIFO even to root (a container or VM whose real-time budget is zero; the lent machines
 of README's "Benchmarks" did). A time-shared thread at nice -20 still gets about 87 times the CPU share of one at
-nice 0 under contention (the kernel's weight table: 88761 against 1024), so the callback, the supervisor and the
-JACK server's threads are niced where FIFO is refused. Where neither is allowed the thread runs as it was, and the
+nice 0 under contention (the kernel's weight table: 88761 against 1024), so the callback, the supervisor, the
+robots' renderer and the JACK server's threads are niced where FIFO is refused (``SONICVERSE_RT_NICE`` picks
+which; measured on a lent machine, README "Benchmarks", session 37: not shown to lower the xruns there). Where neither is allowed the thread runs as it was, and the
 news says so: never a silent fallback.
 """
 from __future__ import annotations
