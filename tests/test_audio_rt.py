@@ -487,7 +487,7 @@ def test_where_real_time_is_refused_each_thread_takes_the_highest_time_shared_pr
     probe = PlatformProbe(1.0)
     res = probe.result()
     assert res["probe_scheduling"] == \
-        f"time-shared, nice {-20 if may else 0} (SCHED_FIFO refused): a Python thread per CPU", res
+        f"time-shared, nice {-20 if may else 0} (SCHED_FIFO refused): a Python process per CPU", res
     assert "why" not in res and 0.9 * os.cpu_count() * 1000 <= res["wakeups"] <= os.cpu_count() * 1000, res
     assert len(res["wakeup_ms_max"]) == os.cpu_count() and all(0 <= m < 1000 for m in res["wakeup_ms_max"])
     assert 0 <= probe.samples[:, 0].min() and probe.samples[:, 0].max() < 1.0

@@ -84,7 +84,7 @@ class PlatformProbe:
                 self.procs.append(subprocess.Popen(
                     [sys.executable, "-c", _TIME_SHARED_PROBE, str(cpu), duration, str(self.INTERVAL_US), str(nice)],
                     stdout=self.logs[-1], stderr=subprocess.STDOUT, text=True))
-            self.scheduling = f"time-shared, nice {nice} (SCHED_FIFO refused): a Python thread per CPU"
+            self.scheduling = f"time-shared, nice {nice} (SCHED_FIFO refused): a Python process per CPU"
         self.steal0 = self._steal()
         self.samples = np.zeros((0, 2))  # (time s from the start, latency ms) of every wake-up, all CPUs
 
