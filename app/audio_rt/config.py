@@ -10,7 +10,7 @@ from sonicverse_core.errors import ConfigError
 # a few shared-memory telemetry slots (int64)
 CALLBACKS, XRUNS, IN_OVERFLOW, OUT_UNDERFLOW, ERRORS, STATE, FAULTS, FRAMES, POSE_FRAMES, POSE_TORN, PID, \
     ERROR_SEQ, PRIMING, ROBOT_BLOCKS, ROBOT_SKIPPED, MIC_NONFINITE, RECOVERIES, CB_POLICY, CB_PRIORITY, \
-    CB_NICE, N_TELE = range(21)
+    CB_NICE, CB_TID, N_TELE = range(22)
 # float64 slots
 LAT_IN, LAT_OUT, LAST_CALLBACK, SAMPLE_RATE, N_TELEF = range(5)
 STARTING, RUNNING, STOPPED, FAILED, LOST = range(5)  # the worker's STATE slot

@@ -11,6 +11,7 @@ An exception is caught, counted and written to the error slot, and the block pla
 """
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -35,7 +36,7 @@ def shared_layout(cfg: AudioConfig, n_listeners: int, pose: PoseLayout) -> Layou
     L = Layout()
     L.add("tele", C.N_TELE, np.int64)
     L.add("telef", C.N_TELEF, np.float64)
-    L.add("dur", (1, C.DURATIONS), np.float32)
+    L.add("dur", (2, C.DURATIONS), np.float32)  # each callback's wall time, then its thread's CPU time (s)
     L.add("dur_head", 1, np.int64)
     L.add("xrun_at", C.XRUN_LOG, np.int64)
     L.add("error", ERROR_BYTES, np.uint8)
@@ -167,7 +168,7 @@ class AudioCore:
             self.test[:4096] = 0.25 * rng.uniform(-1, 1, 4096).astype(np.float32)
         self.frames = 0
         self.warmup_blocks = scene_setup.warmup_blocks
-        self._dur = np.zeros((1, 1), np.float32)
+        self._dur = np.zeros((2, 1), np.float32)
 
     def warm_up(self) -> None:
         """Render the first blocks before the stream starts: JIT caches load, every occlusion ray is cast once.
@@ -244,7 +245,7 @@ class AudioCore:
             self._apply_doors()
 
     def callback(self, indata, outdata, frames, time_info, status) -> None:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         sh, tele = self.sh, self.sh.tele
         mic_written = False
         try:
@@ -260,6 +261,7 @@ class AudioCore:
             if tele[C.CB_POLICY] < 0:  # once: the scheduling the audio server gave this thread (telemetry's news),
                 # raised to nice -20 where the server's is time-shared (a machine that refuses it real time)
                 policy, tele[C.CB_PRIORITY], tele[C.CB_NICE] = favour_if_time_shared(NICE_CALLBACK)
+                tele[C.CB_TID] = threading.get_native_id()
                 tele[C.CB_POLICY] = policy
             if frames != self.cfg.block:
                 raise RuntimeError(f"the device delivered {frames} frames, not {self.cfg.block}")
@@ -309,4 +311,5 @@ class AudioCore:
         t1 = time.perf_counter()
         sh.telef[C.LAST_CALLBACK] = t1
         self._dur[0, 0] = t1 - t0
+        self._dur[1, 0] = time.thread_time() - c0  # far below the wall time: the thread was held off its CPU
         sh.durations.write(self._dur)

@@ -290,6 +290,18 @@ class AudioEngine:
                 break
         return time.monotonic() - t0
 
+    def threads(self) -> dict:
+        """{pid or thread id: role} of the pipeline's processes and its callback thread (for reports of where the
+        CPU went): 'audio worker', 'robots worker', 'callback'."""
+        out = {}
+        for proc, role in ((self._proc, "audio worker"), (self._rproc, "robots worker")):
+            if proc is not None:
+                out[proc.pid] = role
+        sh = getattr(self, "sh", None)
+        if sh is not None and int(sh.tele[C.CB_TID]) > 0:
+            out[int(sh.tele[C.CB_TID])] = "callback"
+        return out
+
     def telemetry(self) -> dict:
         """Callback count and duration (median, p99, max), xruns from PortAudio's status flags, reported latency,
         callback errors, pose frames received; counted since :meth:`mark` (or the start)."""
@@ -320,18 +332,28 @@ class AudioEngine:
         xruns = len(events) + (-(-unlogged // k) if unlogged > 0 else 0)
         xrun_s = [round((i - c0) * block_ms / 1000, 3) for i in events]
 
-        def cycle_ms(j0: int) -> float:  # the callbacks' time in the cycle of blocks j0 .. j0 + k - 1, ms
+        def cycle_ms(j0: int, row: int = 0) -> float:  # the callbacks' time in the cycle of blocks j0 .. j0 + k - 1,
+            # ms: wall (row 0) or the callback thread's CPU (row 1)
             js = range(j0, j0 + k)
             if j0 < 0 or any(n - j > C.DURATIONS or j >= n for j in js):
                 return float("nan")
-            return sum(float(self.sh.durations.data[0, j % C.DURATIONS]) for j in js) * 1000
+            return sum(float(self.sh.durations.data[row, j % C.DURATIONS]) for j in js) * 1000
 
         # the longer of the two cycles before each flagged one (PortAudio flags the cycle after the late one):
-        # above a period, the callbacks themselves overran; below it, they were woken late or the server was
-        xrun_cb = []
+        # above a period, the callbacks themselves overran; below it, they were woken late or the server was. The
+        # same cycle's CPU time tells an overrun of our own work (CPU near the wall time) from a callback held off
+        # its CPU while it ran (CPU far below it: preempted, a vCPU the hypervisor took, a throttled cgroup)
+        xrun_cb, xrun_cpu = [], []
         for i in events:
-            c = [v for v in (cycle_ms(i - 2 * k), cycle_ms(i - k)) if v == v]
-            xrun_cb.append(round(max(c), 3) if c else float("nan"))
+            c = [(v, j) for v, j in ((cycle_ms(i - 2 * k), i - 2 * k), (cycle_ms(i - k), i - k)) if v == v]
+            if c:
+                v, j = max(c)
+                xrun_cb.append(round(v, 3))
+                xrun_cpu.append(round(cycle_ms(j, 1), 3))
+            else:
+                xrun_cb.append(float("nan"))
+                xrun_cpu.append(float("nan"))
+        cpu = self.sh.durations.data[1, idx].astype(np.float64) * 1000
         return {
             "state": self.state, "callbacks": int(t[C.CALLBACKS]), "frames": int(t[C.FRAMES]),
             "xruns": xruns,  # late cycles of the audio server (JACK: per cycle, not per block; see cycle_blocks)
@@ -341,11 +363,15 @@ class AudioEngine:
             "output_underflows": int(t[C.OUT_UNDERFLOW]), "callback_errors": int(t[C.ERRORS]),
             "xrun_at_s": xrun_s,  # stream time of each xrun (the newest XRUN_LOG blocks), from the window's start
             "xrun_callback_ms": xrun_cb,  # the callbacks' time in the longer of the two cycles before each xrun, ms
+            "xrun_callback_cpu_ms": xrun_cpu,  # the CPU time the callback thread got in that cycle, ms
             "block_ms": round(block_ms, 3),
             "cycle_ms": round(block_ms * k, 3),  # the period the xruns are judged against
             "callback_ms": {"median": round(float(np.median(d)), 3) if d.size else None,
                             "p99": round(float(np.percentile(d, 99)), 3) if d.size else None,
                             "max": round(float(d.max()), 3) if d.size else None},
+            "callback_cpu_ms": {"median": round(float(np.median(cpu)), 3) if cpu.size else None,
+                                "p99": round(float(np.percentile(cpu, 99)), 3) if cpu.size else None,
+                                "max": round(float(cpu.max()), 3) if cpu.size else None},
             "callback_load_p99": round(float(np.percentile(d, 99)) / block_ms, 3) if d.size else None,
             "reported_latency_ms": {"input": round(1000 * f[C.LAT_IN], 3), "output": round(1000 * f[C.LAT_OUT], 3)},
             "pose_frames": int(t[C.POSE_FRAMES]), "pose_reads_torn": int(t[C.POSE_TORN]),

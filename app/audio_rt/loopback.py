@@ -86,6 +86,7 @@ class PlatformProbe:
                     stdout=self.logs[-1], stderr=subprocess.STDOUT, text=True))
             self.scheduling = f"time-shared, nice {nice} (SCHED_FIFO refused): a Python process per CPU"
         self.steal0 = self._steal()
+        self.cpu = CpuAccount()
         self.samples = np.zeros((0, 2))  # (time s from the start, latency ms) of every wake-up, all CPUs
 
     @staticmethod
@@ -97,7 +98,10 @@ class PlatformProbe:
         except (OSError, IndexError, ValueError):
             return None
 
-    def result(self) -> dict:
+    def result(self, names: dict | None = None) -> dict:
+        """The probe's figures (call once, at the window's end); ``names``: {pid or thread id: role} to name the
+        busiest threads by (see :class:`CpuAccount`)."""
+        cpu = self.cpu.result({**{p.pid: "probe" for p in self.procs}, **(names or {})})
         steal = self._steal()
         out = {"steal_ms": round(steal - self.steal0, 1) if steal is not None and self.steal0 is not None else None,
                "wakeup_ms_max": None}
@@ -122,18 +126,22 @@ class PlatformProbe:
             else:
                 self.why = f"the probe gave no result: {text.strip().splitlines()[-1:] or self.procs[0].returncode}"
         out["probe_scheduling"] = self.scheduling
+        out.update(cpu)
         if self.why:
             out["why"] = self.why
         return out
 
     def attribute(self, xrun_at_s, period_ms: float, window_s: float = 0.1, stall_ms: float = 1.0,
-                  callback_ms=None) -> dict:
+                  callback_ms=None, callback_cpu_ms=None) -> dict:
         """For each xrun (seconds from the window's start) the longest platform wake-up latency within
         ``window_s`` of it; the platform's stalls (wake-ups later than ``stall_ms``, 50 times a quiet machine's
         20 us; a cluster within ``window_s`` counts once) and how many xruns fell in one (call after
         :meth:`result`). ``callback_ms`` (telemetry's ``xrun_callback_ms``, one per xrun): of the xruns outside the
         platform's stalls, how many followed a callback that itself ran longer than a period (ours) and how many
-        neither (unexplained: a callback woken late, the server)."""
+        neither (unexplained: a callback woken late, the server). ``callback_cpu_ms`` (telemetry's
+        ``xrun_callback_cpu_ms``): of those that overran, how many got less CPU than a period in that cycle
+        (``xruns_callback_held_off``: the thread was runnable or running and off its CPU, preempted or stalled,
+        not computing)."""
         t, lat = self.samples[:, 0], self.samples[:, 1]
         worst = []
         for x in xrun_at_s:
@@ -149,6 +157,121 @@ class PlatformProbe:
             over = [c is not None and c > period_ms for c in callback_ms]
             out["xruns_callback_overran"] = sum(1 for s, o in zip(in_stall, over) if o and not s)
             out["xruns_unexplained"] = sum(1 for s, o in zip(in_stall, over) if not o and not s)
+            if callback_cpu_ms is not None:
+                held = [c is not None and c == c and c <= period_ms for c in callback_cpu_ms]
+                out["xruns_callback_held_off"] = sum(1 for s, o, h in zip(in_stall, over, held) if o and h and not s)
+        return out
+
+
+def _read(path: str) -> str | None:
+    try:
+        with open(path) as f:
+            return f.read()
+    except OSError:
+        return None
+
+
+def _threads_cpu() -> dict:
+    """{(pid, tid): (process name, thread name, CPU ticks)} of every thread on the machine that can be read."""
+    out = {}
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        comm = (_read(f"/proc/{pid}/comm") or "?").strip()
+        try:
+            tids = os.listdir(f"/proc/{pid}/task")
+        except OSError:
+            continue
+        for tid in tids:
+            st = _read(f"/proc/{pid}/task/{tid}/stat")
+            if not st:
+                continue
+            name, rest = st[st.find("(") + 1: st.rfind(")")], st[st.rfind(")") + 2:].split()
+            try:
+                out[(int(pid), int(tid))] = (comm, name, int(rest[11]) + int(rest[12]))
+            except (IndexError, ValueError):
+                continue
+    return out
+
+
+class CpuAccount:
+    """Where the machine's CPU went over a window, to read an xrun count against: the busy CPUs on average
+    (/proc/stat, steal apart), the time some runnable thread waited for a CPU (pressure stall information,
+    /proc/pressure/cpu), the time the CPU quota of this process's cgroup held every one of its threads off
+    (cpu.stat's throttled time; a container's limit, invisible to the guest's idle CPUs) and its quota, and the
+    threads that used the most CPU, by process and thread name (a pool spinning beside the callback shows here)."""
+
+    def __init__(self):
+        self.t0 = time.monotonic()
+        self.stat0, self.psi0, self.cg0 = self._stat(), self._psi(), self._cgroup()
+        self.threads0 = _threads_cpu()
+
+    @staticmethod
+    def _stat():
+        text = _read("/proc/stat")
+        try:
+            return [int(v) for v in text.splitlines()[0].split()[1:]]
+        except (AttributeError, IndexError, ValueError):
+            return None
+
+    @staticmethod
+    def _psi():
+        text = _read("/proc/pressure/cpu")
+        m = re.search(r"^some .*total=(\d+)", text or "", re.M)
+        return int(m.group(1)) if m else None
+
+    @staticmethod
+    def _cgroup():
+        """(throttled periods, throttled us, quota text) of this process's cgroup, v2 or v1; None: not readable."""
+        rel = ""
+        for line in (_read("/proc/self/cgroup") or "").splitlines():
+            parts = line.split(":", 2)
+            if len(parts) == 3 and (parts[0] == "0" or "cpu" in parts[1].split(",")):
+                rel = parts[2]
+                break
+        for base in (f"/sys/fs/cgroup{rel}", "/sys/fs/cgroup", f"/sys/fs/cgroup/cpu,cpuacct{rel}",
+                     "/sys/fs/cgroup/cpu,cpuacct", "/sys/fs/cgroup/cpu"):
+            text = _read(f"{base}/cpu.stat")
+            if not text or "throttled" not in text:
+                continue
+            f = dict(line.split()[:2] for line in text.splitlines() if len(line.split()) >= 2)
+            us = int(f["throttled_usec"]) if "throttled_usec" in f else int(f.get("throttled_time", 0)) // 1000
+            quota = (_read(f"{base}/cpu.max") or "").strip()
+            if not quota:
+                q, p = _read(f"{base}/cpu.cfs_quota_us"), _read(f"{base}/cpu.cfs_period_us")
+                quota = f"{q.strip()} {p.strip()}" if q and p else "?"
+            return int(f.get("nr_throttled", 0)), us, quota
+        return None
+
+    def result(self, names: dict | None = None, top: int = 8) -> dict:
+        """The window's figures; ``names``: {pid or thread id: role} written after the busiest threads' names."""
+        names = {int(k): v for k, v in (names or {}).items()}
+        dt = max(time.monotonic() - self.t0, 1e-6)
+        tck = os.sysconf("SC_CLK_TCK")
+        out = {"cpus": os.cpu_count()}
+        s1 = self._stat()
+        if self.stat0 and s1:
+            d = [b - a for a, b in zip(self.stat0, s1)]
+            # user nice system idle iowait irq softirq steal ...
+            out["cpus_busy"] = round((d[0] + d[1] + d[2] + d[5] + d[6]) / tck / dt, 2)
+        p1 = self._psi()
+        if self.psi0 is not None and p1 is not None:
+            out["cpu_pressure_ms"] = round((p1 - self.psi0) / 1000, 1)
+        c1 = self._cgroup()
+        if self.cg0 is not None and c1 is not None:
+            out["cgroup_throttled"] = c1[0] - self.cg0[0]
+            out["cgroup_throttled_ms"] = round((c1[1] - self.cg0[1]) / 1000, 1)
+            out["cgroup_cpu_max"] = c1[2]
+        t1 = _threads_cpu()
+        used = sorted(((v[2] - self.threads0[k][2], v[0], v[1], k) for k, v in t1.items()
+                       if k in self.threads0 and v[2] > self.threads0[k][2]), reverse=True)
+
+        def who(k) -> str:
+            role = [names[i] for i in dict.fromkeys(k) if i in names]  # the process's role, then the thread's
+            return f" ({', '.join(role)})" if role else ""
+
+        out["threads_top_cpus"] = [f"{comm}/{name}[{k[1]}]{who(k)}: {ticks / tck / dt:.2f}"
+                                   for ticks, comm, name, k in used[:top]]
         return out
 
 
@@ -254,8 +377,9 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
             frames.append(t1 - t0 - t)
             t = t1 - t0
         tele = eng.telemetry()
-        platform = probe.result()
-        platform.update(probe.attribute(tele["xrun_at_s"], tele["cycle_ms"], callback_ms=tele["xrun_callback_ms"]))
+        platform = probe.result({os.getpid(): "main", **eng.threads()})
+        platform.update(probe.attribute(tele["xrun_at_s"], tele["cycle_ms"], callback_ms=tele["xrun_callback_ms"],
+                                        callback_cpu_ms=tele["xrun_callback_cpu_ms"]))
     finally:
         eng.stop()
         if vis is not None:
@@ -276,10 +400,11 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
         "round_trip_bursts": int(ok.size), "round_trip_missed": int(lags.size - ok.size),
         "round_trip_periods": round(float(np.median(ok)) / block, 3) if ok.size else None,
         "settle_s": round(settle, 3), "xruns": tele["xruns"], "xrun_at_s": tele["xrun_at_s"],
-        "xrun_callback_ms": tele["xrun_callback_ms"],
+        "xrun_callback_ms": tele["xrun_callback_ms"], "xrun_callback_cpu_ms": tele["xrun_callback_cpu_ms"],
         "callbacks": tele["callbacks"], "callback_errors": tele["callback_errors"], "robot_blocks": tele["robot_blocks"],
         "robot_blocks_skipped": tele["robot_blocks_skipped"],
         "callback_p99_ms": tele["callback_ms"]["p99"], "callback_ms": tele["callback_ms"],
+        "callback_cpu_ms": tele["callback_cpu_ms"],
         "reported_latency_ms": tele["reported_latency_ms"], "platform": platform,
         "cpu_latency_request": info.get("cpu_latency_request"),
         "frames": len(fr), "frame_ms_p50": round(float(np.median(fr)), 2) if fr.size else None,

@@ -263,17 +263,20 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
                 s.frame()
             tel = s.audio.telemetry()
             _check_stream(s.audio.engine, tel, seconds)
-            platform = probe.result()
+            platform = probe.result({os.getpid(): "main", srv.proc.pid: "jackd", **s.audio.engine.threads()})
             platform["supervisor_scheduling"] = s.audio.engine.info.get("supervisor_scheduling")
             platform["callback_scheduling"] = tel["callback_scheduling"]
             platform["jack_scheduling"] = srv.scheduling
-            platform.update(probe.attribute(tel["xrun_at_s"], tel["cycle_ms"], callback_ms=tel["xrun_callback_ms"]))
+            platform.update(probe.attribute(tel["xrun_at_s"], tel["cycle_ms"], callback_ms=tel["xrun_callback_ms"],
+                                            callback_cpu_ms=tel["xrun_callback_cpu_ms"]))
             r = s.summary()
         extra = {"task_summary": {k: v for k, v in r["task"].items() if k != "rows"}} if task is not None else {}
         return {**extra, "seconds": seconds, "jack_period": served, "loop_fps": r["fps"], "xruns": tel["xruns"],
                 "xrun_blocks": tel["xrun_blocks"], "cycle_blocks": tel["cycle_blocks"],
                 "xrun_at_s": tel["xrun_at_s"], "xrun_callback_ms": tel["xrun_callback_ms"],
+                "xrun_callback_cpu_ms": tel["xrun_callback_cpu_ms"],
                 "callbacks": tel["callbacks"], "callback_ms": tel["callback_ms"],
+                "callback_cpu_ms": tel["callback_cpu_ms"],
                 "callback_errors": tel["callback_errors"], "pose_frames": tel["pose_frames"],
                 "robot_blocks": tel["robot_blocks"], "platform": platform}
     finally:

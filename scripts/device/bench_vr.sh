@@ -35,7 +35,9 @@ sed -i "s/np.infty/np.inf/g" /tmp/site/pyrender/*.py
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYOPENGL_PLATFORM=egl PYGLET_HEADLESS=1 SONICVERSE_CACHE=$PWD/.svcache
 export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 [ -f "$__EGL_VENDOR_LIBRARY_FILENAMES" ] || unset __EGL_VENDOR_LIBRARY_FILENAMES
-nproc; uname -r; grep -m1 "model name" /proc/cpuinfo; grep -o -w -E "avx2|avx512f|fma" /proc/cpuinfo | sort -u | xargs
+nproc; uname -r; cat /proc/self/cgroup; cat /sys/fs/cgroup/cpu.max 2>/dev/null; cat /proc/pressure/cpu 2>/dev/null
+cat /sys/kernel/mm/transparent_hugepage/enabled 2>/dev/null; cat /sys/devices/system/cpu/cpu0/cpufreq/scaling_governor 2>/dev/null
+grep -m1 "model name" /proc/cpuinfo; grep -o -w -E "avx2|avx512f|fma" /proc/cpuinfo | sort -u | xargs
 python3 -c "import sys, numpy, numba; print(sys.version.split()[0], numpy.__version__, numba.__version__)"
 command -v jackd cyclictest || exit 4
 python3 -c "from app.audio_rt import sched; print('SCHED_FIFO allowed:', sched.fifo_allowed(), '; nice -20 allowed:',
@@ -63,12 +65,14 @@ except (OSError, ValueError):
 p = b.get("platform", {})
 print(json.dumps({"rt_nice": os.environ.get("SONICVERSE_RT_NICE", "all")}
                  | {k: b.get(k) for k in ("task", "agent", "jack_period", "loop_fps", "xruns", "xrun_blocks", "cycle_blocks",
-                                          "callbacks", "xrun_at_s",
-                                          "xrun_callback_ms", "callback_ms", "callback_errors")}
+                                          "callbacks", "xrun_at_s", "xrun_callback_ms", "xrun_callback_cpu_ms",
+                                          "callback_ms", "callback_cpu_ms", "callback_errors")}
                  | {k: p.get(k) for k in ("supervisor_scheduling", "callback_scheduling", "jack_scheduling",
                                           "probe_scheduling", "wakeup_ms_max", "steal_ms",
                                           "platform_stalls", "xruns_in_platform_stalls", "xruns_callback_overran",
-                                          "xruns_unexplained", "why")}))
+                                          "xruns_callback_held_off", "xruns_unexplained", "cpus_busy",
+                                          "cpu_pressure_ms", "cgroup_throttled", "cgroup_throttled_ms",
+                                          "cgroup_cpu_max", "threads_top_cpus", "why")}))
 PY
   [ $rc -eq 0 ] || exit 6  # the rest would fail alike: keep the device time for a rerun
 done
