@@ -484,8 +484,13 @@ def test_where_real_time_is_refused_each_thread_takes_the_highest_time_shared_pr
     # cyclictest cannot run there (it takes real time whatever its --policy): a pinned Python process per CPU sleeps
     # to the same 1 ms deadlines, at nice -20 where allowed; its rows go through the same attribution
     monkeypatch.setattr(sched, "fifo_allowed", lambda: False)
-    probe = PlatformProbe(1.0)
+    probe = PlatformProbe(1.0, lead=0.5, tail=1.0)
+    assert probe.due() > 0.3  # the processes start before the window opens...
+    probe.wait_start()
+    assert probe.due() <= 0
     res = probe.result()
+    assert probe.span_s[0] == 0.0 and probe.span_s[1] >= 1.9  # ...and run a tail past its end: neither their
+    # start-up nor their rows written at the end fall in the window (on a lent machine both cost an xrun)
     assert res["probe_scheduling"] == \
         f"time-shared, nice {-20 if may else 0} (SCHED_FIFO refused): a Python process per CPU", res
     assert "why" not in res and 0.9 * os.cpu_count() * 1000 <= res["wakeups"] <= os.cpu_count() * 1000, res

@@ -59,15 +59,21 @@ class PlatformProbe:
 
     INTERVAL_US = 1000
 
-    def __init__(self, seconds: float):
+    def __init__(self, seconds: float, lead: float = 0.5, tail: float = 1.0):
+        """Starts the probe for a window of ``seconds`` that opens ``lead`` s from now (:meth:`wait_start`); the
+        probe runs ``tail`` s past the window's end. Its own start and end stay out of the window: a Python process
+        per CPU starting at once, or writing its rows at once, held the callback up on a lent machine (measured: an
+        xrun 11 ms into the window, and one 96 ms past its nominal end, both in a 6 ms stall seen on every CPU)."""
         import sys
         import tempfile
 
         from app.audio_rt.sched import NICE_CALLBACK, fifo_allowed, nice_allowed
 
         self.procs, self.why, self.logs, self.scheduling = [], None, [], None
+        self.seconds, self.start_at = seconds, time.monotonic() + lead
+        self.offset = lead  # s from the probe's own cycle 0 to the window's start
         exe = shutil.which("cyclictest")
-        duration = str(int(np.ceil(seconds)))
+        duration = str(int(np.ceil(lead + seconds + tail)))
         if fifo_allowed():
             if exe is None:
                 self.why = "cyclictest not found: install the Debian package rt-tests"
@@ -79,15 +85,30 @@ class PlatformProbe:
                 self.scheduling = "SCHED_FIFO 90"
         else:  # cyclictest takes a real-time priority whatever its --policy (it exits at once): a time-shared probe
             nice = NICE_CALLBACK if nice_allowed(NICE_CALLBACK) else 0
+            self.offset = 0.0  # its cycle 0 is the window's start (an absolute CLOCK_MONOTONIC time)
             for cpu in sorted(os.sched_getaffinity(0)):
                 self.logs.append(tempfile.TemporaryFile("w+"))
                 self.procs.append(subprocess.Popen(
-                    [sys.executable, "-c", _TIME_SHARED_PROBE, str(cpu), duration, str(self.INTERVAL_US), str(nice)],
+                    [sys.executable, "-c", _TIME_SHARED_PROBE, str(cpu), str(seconds + tail), str(self.INTERVAL_US),
+                     str(nice), repr(self.start_at)],
                     stdout=self.logs[-1], stderr=subprocess.STDOUT, text=True))
             self.scheduling = f"time-shared, nice {nice} (SCHED_FIFO refused): a Python process per CPU"
         self.steal0 = self._steal()
         self.cpu = CpuAccount()
-        self.samples = np.zeros((0, 2))  # (time s from the start, latency ms) of every wake-up, all CPUs
+        self.samples = np.zeros((0, 2))  # (time s from the window's start, latency ms) of every wake-up, all CPUs
+
+    def due(self) -> float:
+        """Seconds until the window opens (a frame loop runs its frames meanwhile, then calls :meth:`wait_start`)."""
+        return self.start_at - time.monotonic()
+
+    def wait_start(self) -> None:
+        """Sleep until the window opens (the caller marks its telemetry right after); the machine's CPU account
+        starts here."""
+        d = self.start_at - time.monotonic()
+        if d > 0:
+            time.sleep(d)
+        self.steal0 = self._steal()
+        self.cpu = CpuAccount()
 
     @staticmethod
     def _steal() -> float | None:
@@ -119,7 +140,11 @@ class PlatformProbe:
             rows = re.findall(r"^\s*(\d+):\s*(\d+):\s*(\d+)\s*$", text, re.M)
             if rows:
                 a = np.array(rows, dtype=np.int64)
-                self.samples = np.stack([a[:, 1] * self.INTERVAL_US / 1e6, a[:, 2] / 1000.0], 1)
+                t = a[:, 1] * self.INTERVAL_US / 1e6 - self.offset
+                self.span_s = (float(t.min()), float(t.max()) + self.INTERVAL_US / 1e6)  # its wake-ups, s from the
+                # window's start
+                a = a[(t >= 0) & (t < self.seconds)]  # the window's wake-ups only
+                self.samples = np.stack([a[:, 1] * self.INTERVAL_US / 1e6 - self.offset, a[:, 2] / 1000.0], 1)
                 out["wakeup_ms_max"] = [round(float(a[a[:, 0] == c, 2].max()) / 1000, 3)
                                         for c in np.unique(a[:, 0])]
                 out["wakeups"] = int(len(a))
@@ -275,7 +300,8 @@ class CpuAccount:
         return out
 
 
-# the time-shared probe's body: argv cpu, seconds, interval in us, nice; one row 'cpu: cycle: lateness us' a wake-up
+# the time-shared probe's body: argv cpu, seconds, interval in us, nice, start (time.monotonic(), the same clock in
+# every process); one row 'cpu: cycle: lateness us' a wake-up, cycle 0 due at the start
 _TIME_SHARED_PROBE = """
 import gc, os, sys, time
 cpu, seconds, interval, nice = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
@@ -285,7 +311,7 @@ if nice:
 gc.disable()
 n, step, clock, sleep = int(seconds * 1e6) // interval, interval / 1e6, time.monotonic, time.sleep
 late = [0] * n
-t0 = clock() + step
+t0 = float(sys.argv[5])
 for k in range(n):
     due = t0 + k * step
     d = due - clock()
@@ -350,8 +376,9 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
         wired = connect_loopback(client) if client else ("output 1", "input 1 (cable)")
         eng.set_poses(head, robots=robo, t=0.0)  # the frame loop runs before the window opens: no first-pose jump
         settle = eng.wait_settled()  # the JACK graph change itself may cost a cycle: start counting after it
-        eng.mark()
         probe = PlatformProbe(seconds)
+        probe.wait_start()
+        eng.mark()
         mic_ring, out_ring = eng.sh.mic, eng.sh.ears[0]
         first = min(int(mic_ring.head[0]), int(out_ring.head[0]))
         mic_ring.read_pos = out_ring.read_pos = first

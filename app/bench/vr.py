@@ -255,8 +255,11 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
             served = jack_buffer_size()  # the server's frames per cycle, as it reports them
             s.frame()  # the loop is running (first poses handed over) and the JACK graph has settled: then count
             s.audio.engine.wait_settled()
+            probe = PlatformProbe(seconds)  # its start stays out of the window; the loop runs on meanwhile
+            while probe.due() > 0.02:
+                s.frame()
+            probe.wait_start()
             s.audio.engine.mark()
-            probe = PlatformProbe(seconds)
             s._last_in = None
             t0 = time.perf_counter()
             while time.perf_counter() - t0 < seconds:
