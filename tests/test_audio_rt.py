@@ -158,7 +158,13 @@ def test_callback_logs_when_each_xrun_happened_and_keeps_the_mic_ring_in_step():
     dur[c0:c0 + 12] = 0.001
     dur[c0 + 2], dur[c0 + 3] = 0.004, 0.005  # the cycle before the first xrun: 9 ms, under the 10.7 ms period
     dur[c0 + 6] = 0.011  # the cycle before the second: 12 ms, over it
+    cpu = eng.sh.durations.data[1]
+    cpu[c0:c0 + 12] = 0.001
+    cpu[c0 + 2], cpu[c0 + 3] = 0.004, 0.005  # 9 ms of CPU in 9 ms: it computed all along
+    cpu[c0 + 6] = 0.002  # 3 ms of CPU in 12 ms: held off its CPU for 9
     tele = eng.telemetry()
+    np.testing.assert_allclose(tele["xrun_callback_cpu_ms"], [9.0, 3.0], atol=1e-3)
+    assert tele["callback_cpu_ms"]["max"] == pytest.approx(5.0, abs=1e-3)
     assert tele["xrun_blocks"] == 4 and tele["xruns"] == 2 and tele["cycle_blocks"] == 2
     assert tele["cycle_ms"] == pytest.approx(2 * 1000 * B / FS, abs=1e-3)
     np.testing.assert_allclose(tele["xrun_at_s"], [4 * B / FS, 8 * B / FS], atol=1e-3)
@@ -168,6 +174,38 @@ def test_callback_logs_when_each_xrun_happened_and_keeps_the_mic_ring_in_step():
     for k in range(8):
         core.callback(ind, outd, B, None, sd.CallbackFlags(0x4 if k in (2, 3, 4, 5) else 0))
     assert eng.telemetry()["xruns"] == 2
+
+
+def test_cpu_account_names_the_busy_threads():
+    """Where the window's CPU went: a thread of this process that spins for the whole window shows as the busiest,
+    named by the role given, using about one CPU; the machine's busy CPUs count it."""
+    import os
+    import threading
+    import time
+
+    from app.audio_rt.loopback import CpuAccount
+
+    acc = CpuAccount()
+    tid, spun, done = [], threading.Event(), threading.Event()
+
+    def spin():
+        tid.append(threading.get_native_id())
+        end = time.thread_time() + 0.4
+        while time.thread_time() < end:  # 0.4 s of this thread's own CPU, however the machine shares it out
+            pass
+        spun.set()
+        done.wait()  # alive when the account closes (a thread gone by then is not in /proc to be counted)
+
+    t = threading.Thread(target=spin)
+    t.start()
+    spun.wait()
+    res = acc.result({os.getpid(): "main", tid[0]: "spinner"})
+    done.set()
+    t.join()
+    top = [r for r in res["threads_top_cpus"] if f"[{tid[0]}] (main, spinner)" in r]
+    assert top, res["threads_top_cpus"]
+    assert res["cpus"] == os.cpu_count() and res["cpus_busy"] > 0
+    assert res.get("cgroup_throttled_ms", 0) >= 0 and res.get("cpu_pressure_ms", 0) >= 0
 
 
 def test_platform_probe_and_realtime_settings():
@@ -198,6 +236,11 @@ def test_platform_probe_and_realtime_settings():
     assert a["xruns_callback_overran"] == 1 and a["xruns_unexplained"] == 0
     a = probe.attribute([2.05, 3.5, 5.01], period_ms=5.333, callback_ms=[9.0, 1.0, 1.0])
     assert a["xruns_callback_overran"] == 0 and a["xruns_unexplained"] == 1
+    # the callback at 3.5 s ran 7 ms with 2 ms of CPU: held off its CPU; with 6 ms of CPU it computed
+    a = probe.attribute([2.05, 3.5, 5.01], period_ms=5.333, callback_ms=[9.0, 7.0, 1.0], callback_cpu_ms=[9, 2, 1])
+    assert a["xruns_callback_overran"] == 1 and a["xruns_callback_held_off"] == 1
+    a = probe.attribute([2.05, 3.5, 5.01], period_ms=5.333, callback_ms=[9.0, 7.0, 1.0], callback_cpu_ms=[9, 6, 1])
+    assert a["xruns_callback_overran"] == 1 and a["xruns_callback_held_off"] == 0
     assert a["platform_stalls"] == 2 and a["platform_stalls_over_period"] == 2
     assert len(res["wakeup_ms_max"]) == os.cpu_count() and all(0 < m < 1000 for m in res["wakeup_ms_max"])
     assert res["steal_ms"] is None or res["steal_ms"] >= 0

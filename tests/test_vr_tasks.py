@@ -141,6 +141,11 @@ def test_bench_vr_task_runs_its_jack_server_at_the_period_asked(cli):
     assert d["jack_period"] == 512 and d["callbacks"] >= 0.5 * 48000 / 256 * 0.8 and d["callback_errors"] == 0
     assert d["cycle_blocks"] == 2 and d["platform"]["period_ms"] == pytest.approx(10.667, abs=1e-3)
     assert d["xruns"] <= d["xrun_blocks"] <= 2 * d["xruns"]
+    # where the window's CPU went: the callback's CPU time never exceeds its wall time, and the busiest threads are
+    # named by role (the callback renders every block of the window, so it is among them)
+    assert 0 < d["callback_cpu_ms"]["median"] <= d["callback_ms"]["median"] + 0.05
+    p = d["platform"]
+    assert p["cpus_busy"] > 0 and any("(audio worker, callback)" in t for t in p["threads_top_cpus"]), p
 
 
 def test_vr_task_command(cli, tmp_path):

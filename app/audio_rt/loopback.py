@@ -288,8 +288,9 @@ class CpuAccount:
             out["cgroup_throttled_ms"] = round((c1[1] - self.cg0[1]) / 1000, 1)
             out["cgroup_cpu_max"] = c1[2]
         t1 = _threads_cpu()
-        used = sorted(((v[2] - self.threads0[k][2], v[0], v[1], k) for k, v in t1.items()
-                       if k in self.threads0 and v[2] > self.threads0[k][2]), reverse=True)
+        was = {k: v[2] for k, v in self.threads0.items()}  # a thread born in the window: all its CPU is the window's
+        used = sorted(((v[2] - was.get(k, 0), v[0], v[1], k) for k, v in t1.items() if v[2] > was.get(k, 0)),
+                      reverse=True)
 
         def who(k) -> str:
             role = [names[i] for i in dict.fromkeys(k) if i in names]  # the process's role, then the thread's
