@@ -164,7 +164,9 @@ def _spectra(t: np.ndarray, P: int, B: int) -> np.ndarray:
     pad = np.zeros((C, P * B))
     pad[:, : t.shape[1]] = t
     parts = np.fft.rfft(pad.reshape(C, P, B).transpose(1, 0, 2), 2 * B, axis=-1)  # (P, C, nf)
-    H = np.concatenate([parts[::-1], parts[::-1]]).astype(np.complex64)
+    # C order whatever the FFT returns: NumPy 2's FFT keeps its input's memory order (channel outermost here) and
+    # astype keeps that, so the tail reached fdl_mac as a strided array and its loop ran 2.8 times slower
+    H = np.ascontiguousarray(np.concatenate([parts[::-1], parts[::-1]]), dtype=np.complex64)
     H.setflags(write=False)
     return H
 
