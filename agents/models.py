@@ -276,9 +276,9 @@ class PolicyEnsemble(nn.Module):
         for m in members:
             if not isinstance(m, AVNav) or not m.discrete:
                 raise ConfigError("an ensemble's members are AV-Nav policies with the discrete head")
-            if asdict(m.cfg) != asdict(cfg):
+            if _acting(m.cfg) != _acting(cfg):
                 raise ConfigError("an ensemble's members must share one configuration (sensors, map, actions): "
-                                  f"{_config_diff(asdict(cfg), asdict(m.cfg))}")
+                                  f"{_config_diff(_acting(cfg), _acting(m.cfg))}")
         self.members = nn.ModuleList(members)
         self.cfg = cfg
         self.discrete = True
@@ -305,6 +305,15 @@ class PolicyEnsemble(nn.Module):
     def act(self, out: torch.Tensor) -> torch.Tensor:
         """The most likely primitive of the mean distribution."""
         return self.table[out.argmax(-1)]
+
+
+def _acting(cfg) -> dict:
+    """An AV-Nav configuration as it bears on acting: which map a policy without a map input would read means
+    nothing (files from before ``map_kind`` existed hold its default, "follow"; later ones the task's)."""
+    d = asdict(cfg)
+    if not d.get("map_shape"):
+        d.pop("map_kind", None)
+    return d
 
 
 def _config_diff(a: dict, b: dict) -> str:

@@ -227,6 +227,13 @@ def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli
     assert any(np.allclose(a, t) for t in cfg.primitives) and h1.shape == (2, 1, 1, cfg.hidden)
     res_run = run_task("audio-goal", "av-nav", 1, seed=0, checkpoint=res["checkpoint"], env_kwargs={"max_steps": 8})
     assert res_run["episodes"] == 1
+    # a policy without a map input joins whatever map kind its file names (files from before the field hold
+    # "follow", later AudioGoal ones "nav"): the map it does not read is no difference
+    nav = tmp_path / "nav.pt"
+    save(AVNav(AVNavConfig(primitives=primitives_for(2), map_kind="nav")), nav, {"config": {"task": "AudioGoal"}})
+    r = cli("train", "--task", "AudioGoal", "--ensemble", str(paths[0]), str(nav), "--out", str(tmp_path / "n"),
+            "--json")
+    assert isinstance(load_policy(json.loads(r.stdout)["checkpoint"], "av-nav")[0], PolicyEnsemble)
     other = tmp_path / "other.pt"
     save(AVNav(AVNavConfig(primitives=primitives_for(3))), other, {"config": {"task": "AudioGoal"}})
     sf = tmp_path / "sf.pt"
