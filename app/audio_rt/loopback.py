@@ -93,7 +93,6 @@ class PlatformProbe:
                      str(nice), repr(self.start_at)],
                     stdout=self.logs[-1], stderr=subprocess.STDOUT, text=True))
             self.scheduling = f"time-shared, nice {nice} (SCHED_FIFO refused): a Python process per CPU"
-        self.steal0 = self._steal()
         self.cpu = CpuAccount()
         self.samples = np.zeros((0, 2))  # (time s from the window's start, latency ms) of every wake-up, all CPUs
 
@@ -104,28 +103,16 @@ class PlatformProbe:
     def wait_start(self) -> None:
         """Sleep until the window opens (the caller marks its telemetry right after); the machine's CPU account
         starts here."""
-        d = self.start_at - time.monotonic()
+        d = self.due()
         if d > 0:
             time.sleep(d)
-        self.steal0 = self._steal()
         self.cpu = CpuAccount()
-
-    @staticmethod
-    def _steal() -> float | None:
-        try:
-            with open("/proc/stat") as f:
-                cpu = f.readline().split()
-            return int(cpu[8]) * 1000 / os.sysconf("SC_CLK_TCK")
-        except (OSError, IndexError, ValueError):
-            return None
 
     def result(self, names: dict | None = None) -> dict:
         """The probe's figures (call once, at the window's end); ``names``: {pid or thread id: role} to name the
         busiest threads by (see :class:`CpuAccount`)."""
         cpu = self.cpu.result({**{p.pid: "probe" for p in self.procs}, **(names or {})})
-        steal = self._steal()
-        out = {"steal_ms": round(steal - self.steal0, 1) if steal is not None and self.steal0 is not None else None,
-               "wakeup_ms_max": None}
+        out = {"steal_ms": cpu.pop("steal_ms", None), "wakeup_ms_max": None}
         if self.procs:
             text = ""
             for proc, log in zip(self.procs, self.logs):
@@ -140,11 +127,11 @@ class PlatformProbe:
             rows = re.findall(r"^\s*(\d+):\s*(\d+):\s*(\d+)\s*$", text, re.M)
             if rows:
                 a = np.array(rows, dtype=np.int64)
-                t = a[:, 1] * self.INTERVAL_US / 1e6 - self.offset
-                self.span_s = (float(t.min()), float(t.max()) + self.INTERVAL_US / 1e6)  # its wake-ups, s from the
-                # window's start
-                a = a[(t >= 0) & (t < self.seconds)]  # the window's wake-ups only
-                self.samples = np.stack([a[:, 1] * self.INTERVAL_US / 1e6 - self.offset, a[:, 2] / 1000.0], 1)
+                t = a[:, 1] * self.INTERVAL_US / 1e6 - self.offset  # s from the window's start
+                self.span_s = (float(t.min()), float(t.max()) + self.INTERVAL_US / 1e6)  # all its wake-ups'
+                keep = (t >= 0) & (t < self.seconds)  # the window's wake-ups only
+                a = a[keep]
+                self.samples = np.stack([t[keep], a[:, 2] / 1000.0], 1)
                 out["wakeup_ms_max"] = [round(float(a[a[:, 0] == c, 2].max()) / 1000, 3)
                                         for c in np.unique(a[:, 0])]
                 out["wakeups"] = int(len(a))
@@ -279,6 +266,8 @@ class CpuAccount:
             d = [b - a for a, b in zip(self.stat0, s1)]
             # user nice system idle iowait irq softirq steal ...
             out["cpus_busy"] = round((d[0] + d[1] + d[2] + d[5] + d[6]) / tck / dt, 2)
+            if len(d) > 7:
+                out["steal_ms"] = round(d[7] * 1000 / tck, 1)  # the hypervisor's, over all CPUs
         p1 = self._psi()
         if self.psi0 is not None and p1 is not None:
             out["cpu_pressure_ms"] = round((p1 - self.psi0) / 1000, 1)
