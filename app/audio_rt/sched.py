@@ -5,8 +5,9 @@ Some machines refuse SCHED_FIFO even to root (a container or VM whose real-time 
 of README's "Benchmarks" did). A time-shared thread at nice -20 still gets about 87 times the CPU share of one at
 nice 0 under contention (the kernel's weight table: 88761 against 1024), so the callback, the supervisor, the
 robots' renderer and the JACK server's threads are niced where FIFO is refused (``SONICVERSE_RT_NICE`` picks
-which; measured on a lent machine, README "Benchmarks", session 37: not shown to lower the xruns there). Where neither is allowed the thread runs as it was, and the
-news says so: never a silent fallback.
+which). On a lent machine so niced (README "Benchmarks", session 38) every task played 60 s at 512 frames with no
+xrun; session 37's A/B against no nice at all was within the machines' spread. Where neither is allowed the thread
+runs as it was, and the news says so: never a silent fallback.
 """
 from __future__ import annotations
 
