@@ -332,6 +332,9 @@ def write_ensemble(paths, out, half: bool = True, task: str | None = None, tempe
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.storage import atomic_write
 
+    for p in paths:
+        if Path(p).is_file() and torch.load(p, map_location="cpu", weights_only=False).get("arch") == "ensemble":
+            raise ConfigError(f"{p} is an ensemble already: join its members' own checkpoints")
     models, metas = zip(*(load(p) for p in paths))
     PolicyEnsemble(list(models))  # the members agree (one configuration, discrete heads), or a ConfigError says why
     tasks = {(mt.get("config") or {}).get("task") for mt in metas}

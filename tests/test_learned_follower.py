@@ -247,6 +247,7 @@ def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli
         return err
 
     for args, msg in (((paths[0], other), "share one configuration"), ((paths[0],), "two policies or more"),
+                      ((paths[0], res["checkpoint"]), "an ensemble already"),
                       ((paths[0], sf), "trained on one task"), ((paths[0], paths[1]), "exists")):
         out_dir = tmp_path / ("e" if msg == "exists" else msg.replace(" ", "_"))
         assert msg in refused("train", "--task", "AudioGoal", "--ensemble", *map(str, args), "--out", str(out_dir))
