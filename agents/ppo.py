@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agents.imitation import NAV_VAL, SENSORS, VAL_KEYS, _inputs, _stack, append_row, evaluate
+from agents.imitation import (NAV_VAL, SENSORS, VAL_KEYS, _inputs, _map_input, _stack, append_row, ego_for, evaluate,
+                              floor_shield, sensors_for)
 from agents.models import (AVNav, AVNavConfig, acting_threads, load_policy, primitives_for, resolve_device,
                            save_policy as save)
 
@@ -142,10 +143,48 @@ class Dist:
             self.dist.destroy_process_group()
 
 
-def _dist_of(model: AVNav, out: torch.Tensor):
+def _dist_of(model: AVNav, out: torch.Tensor, allowed: torch.Tensor | None = None):
+    """The policy's action distribution from its head's output; ``allowed`` (bool, the output's shape; discrete
+    head) removes the actions the floor shield forbids, as the agent plays (rows where it forbids every action keep
+    them all, as :func:`agents.imitation._policy_step` does)."""
     if model.discrete:
+        if allowed is not None:
+            keep = allowed | ~allowed.any(-1, keepdim=True)
+            out = out.masked_fill(~keep, -1e9)
         return torch.distributions.Categorical(logits=out)
     return torch.distributions.Normal(out, model.log_std.exp())
+
+
+class _Maps:
+    """The egocentric maps of a map policy's envs (one :func:`agents.imitation.ego_for` each), drawn once per
+    observation (a map's belief moves on with every ``observe``), with the floor shield's allowed actions at that
+    step: the same maps and the same shield the ``av-nav`` agent plays with. Empty for a policy without a map."""
+
+    def __init__(self, model, n: int):
+        self.model = model
+        self.egos = [ego_for(model) for _ in range(n)]
+        self.on = self.egos[0] is not None if n else False
+        self.maps: list = [None] * n
+        self.allowed: list = [None] * n
+
+    def reset(self, i: int, env, obs, info) -> None:
+        if self.on:
+            self.egos[i].reset(env, obs, info)
+            self.see(i, obs, info)
+
+    def see(self, i: int, obs, info) -> None:
+        if self.on:
+            self.maps[i] = np.ascontiguousarray(self.egos[i].observe(obs, info))
+            ok = floor_shield(self.model, self.egos[i])
+            n = len(self.model.table) if self.model.discrete else 1
+            self.allowed[i] = np.ones(n, bool) if ok is None else np.asarray(ok, bool)
+
+    def now(self, device) -> tuple:
+        """(the maps as uint8 (1, E, C, H, W), the allowed actions (1, E, A)) on ``device``; (None, None) without."""
+        if not self.on:
+            return None, None
+        return (torch.from_numpy(np.stack(self.maps))[None].to(device),
+                torch.from_numpy(np.stack(self.allowed))[None].to(device))
 
 
 def train(cfg: PPOConfig, out, progress=None) -> dict:
@@ -166,8 +205,6 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         raise ConfigError(f"{out / 'model.pt'} exists: choose another --out")
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng([cfg.seed, dist.rank])
-    envs = [make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size,
-                     homes=cfg.homes or None) for _ in range(cfg.envs)]
     if cfg.init:
         model, meta = load_policy(cfg.init)  # AV-Nav, SAVi or the multi-task model
         from agents.learned import check_trained_on
@@ -178,12 +215,17 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                               "fine-tune one of its members")
         if hasattr(model, "stage"):
             model.stage(2)  # SAVi's second stage: the full memory, the encoders frozen
-        if getattr(model.cfg, "map_shape", ()):
-            raise ConfigError(f"{cfg.init} reads an egocentric map (--map): PPO does not fine-tune such policies yet")
+        if getattr(model.cfg, "map_shape", ()) and hasattr(model, "stage"):
+            raise ConfigError(f"{cfg.init}: PPO fine-tunes map policies of av-nav only")
         size = model.cfg.depth_hw[0]
         if size != cfg.size:
             raise ConfigError(f"{cfg.init} was trained on {size} px depth, not --size {cfg.size}")
+        # a map policy (train --map) acts on its map, drawn per env as it plays, through the floor shield
+        envs = [make_env(cfg.task, split="train", sensors=sensors_for(model), width=cfg.size, height=cfg.size,
+                         homes=cfg.homes or None) for _ in range(cfg.envs)]
     else:
+        envs = [make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size,
+                         homes=cfg.homes or None) for _ in range(cfg.envs)]
         adim = envs[0].action_space.shape[0]
         model = AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=envs[0].observation_space[
             "spectrogram"].shape, action_dim=adim, primitives=primitives_for(adim) if cfg.head == "discrete" else ()))
@@ -204,7 +246,12 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
     not_critic = [q_ for q_ in model.parameters() if id(q_) not in critic_ids]
     E, T = cfg.envs, cfg.steps
     updates = max(1, math.ceil(cfg.frames / (E * T * dist.world)))
-    obs = [e.reset(seed=int(rng.integers(2**31)))[0] for e in envs]
+    maps = _Maps(model, E)
+    obs = []
+    for i, e in enumerate(envs):
+        o, inf = e.reset(seed=int(rng.integers(2**31)))
+        obs.append(o)
+        maps.reset(i, e, o, inf)
     h = model.initial_state(E)
     h_ref = model.initial_state(E)
     start = torch.ones(E, device=dev)
@@ -217,23 +264,28 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         for u in range(updates):
             model.eval()
             h0 = h.clone()
-            buf = {k: [] for k in ("d", "s", "p", "a", "logp", "v", "r", "start", "ref")}
+            buf = {k: [] for k in ("d", "s", "p", "mp", "ok", "a", "logp", "v", "r", "start", "ref")}
             t_roll = time.perf_counter()
             n = 0
             for t in range(T):
                 d, s, p = _stack(obs)
                 d, s, p = (None if x is None else x.to(dev) for x in (d, s, p))
+                mp, ok = maps.now(dev)
+                kw = {} if mp is None else {"egomap": _map_input(mp)}
                 with torch.no_grad(), acting_threads():
-                    o, v, h = model(*_inputs(d, s, p), h, start[None])
+                    o, v, h = model(*_inputs(d, s, p), h, start[None], **kw)
                     if ref is not None:
-                        o_ref, _, h_ref = ref(*_inputs(d, s, p), h_ref, start[None])
+                        o_ref, _, h_ref = ref(*_inputs(d, s, p), h_ref, start[None], **kw)
                         buf["ref"].append(o_ref[0])
-                    pi = _dist_of(model, o[0])
+                    pi = _dist_of(model, o[0], None if ok is None else ok[0])
                     a = pi.sample()
                     logp = pi.log_prob(a) if model.discrete else pi.log_prob(a).sum(-1)
                 acts = (model.table[a] if model.discrete else a.clamp(-1, 1)).cpu()
                 for k, x in zip(("d", "s", "p", "a", "logp", "v", "start"), (d[0], s[0], p[0], a, logp, v[0], start)):
                     buf[k].append(x)
+                if mp is not None:
+                    buf["mp"].append(mp[0])
+                    buf["ok"].append(ok[0])
                 rew, new_start = np.zeros(E, np.float32), torch.zeros(E, device=dev)
                 for i, e in enumerate(envs):
                     obs[i], r, term, trunc, info = e.step(acts[i].numpy().astype(np.float32))
@@ -243,8 +295,11 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                         m = info.get("metrics", {})
                         ep_stats.append((float(m.get("success", 0.0)), float(m.get("spl", 0.0)), ep_ret[i]))
                         ep_ret[i] = 0.0
-                        obs[i] = e.reset(seed=int(rng.integers(2**31)))[0]
+                        obs[i], info = e.reset(seed=int(rng.integers(2**31)))
+                        maps.reset(i, e, obs[i], info)
                         new_start[i] = 1.0
+                    else:
+                        maps.see(i, obs[i], info)
                 buf["r"].append(torch.from_numpy(rew).to(dev))
                 start = new_start
                 n += E
@@ -255,7 +310,9 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
             frames += int(dist.sum(n))
             # bootstrap and advantages
             with torch.no_grad():
-                _, v_last, _ = model(*_inputs(*_stack(obs), dev), h, start[None])
+                mp, _ = maps.now(dev)
+                kw = {} if mp is None else {"egomap": _map_input(mp)}
+                _, v_last, _ = model(*_inputs(*_stack(obs), dev), h, start[None], **kw)
             L = len(buf["r"])
             B = {k: torch.stack(v) for k, v in buf.items() if v}  # (L, E, ...)
             adv = torch.zeros(L, E, device=dev)
@@ -271,11 +328,15 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
             # update: whole rollouts per env, from the state the rollout started in
             model.train()
             stats = []
-            for _ in range(cfg.epochs):
-                o, v, _ = model(*_inputs(B["d"], B["s"], B["p"]), h0, B["start"])
-                pi = _dist_of(model, o)
+            kw = {"egomap": _map_input(B["mp"])} if "mp" in B else {}
+            ok = B.get("ok")
+            for epoch in range(cfg.epochs):
+                o, v, _ = model(*_inputs(B["d"], B["s"], B["p"]), h0, B["start"], **kw)
+                pi = _dist_of(model, o, ok)
                 logp = pi.log_prob(B["a"]) if model.discrete else pi.log_prob(B["a"]).sum(-1)
                 ratio = (logp - B["logp"]).exp()
+                if epoch == 0:  # before any step: the update replays what acted, so every ratio is 1
+                    replay = float((ratio.detach() - 1).abs().max())
                 pg = -torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv).mean()
                 vl = ((v - ret) ** 2).mean()
                 ent = pi.entropy().mean() if model.discrete else pi.entropy().sum(-1).mean()
@@ -283,7 +344,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 loss = cfg.value_coef * vl if warm else pg + cfg.value_coef * vl - cfg.entropy * ent
                 kl = torch.zeros((), device=dev)
                 if ref is not None:
-                    kl = torch.distributions.kl_divergence(_dist_of(ref, B["ref"]), pi)
+                    kl = torch.distributions.kl_divergence(_dist_of(ref, B["ref"], ok), pi)
                     kl = kl.mean() if model.discrete else kl.sum(-1).mean()
                     if not warm:
                         loss = loss + cfg.kl_init * kl
@@ -309,7 +370,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 row = {"update": u, "frames": frames, "processes": dist.world, "rollout_steps": L,
                        "rollout_fps": round(n / roll_s, 1), "policy_loss": round(st[0], 5),
                        "value_loss": round(st[1], 5), "entropy": round(st[2], 4), "clipped": round(st[3], 3),
-                       "kl_init": round(st[4], 5),
+                       "kl_init": round(st[4], 5), "replay_err": float(f"{replay:.3g}"),
                        "train_sr": round(float(np.mean([x[0] for x in recent])), 3) if recent else None,
                        "train_return": round(float(np.mean([x[2] for x in recent])), 3) if recent else None,
                        **{f"val_{k}": val.get(k) for k in VAL_KEYS.get(cfg.task, NAV_VAL)},

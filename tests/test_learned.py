@@ -406,6 +406,27 @@ def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
     assert all(a[2] < 0 for a in drawn) and len({tuple(a) for a in drawn}) > 3  # drawn, never the stop
 
 
+def test_ppo_draws_through_the_floor_shield_and_scores_what_it_drew_under_it():
+    """PPO's policy distribution under the floor shield's mask (a map policy fine-tuned as it plays): a forbidden
+    action is never drawn, the allowed ones keep their relative odds (log-probabilities renormalised over them),
+    and a row that forbids everything keeps every action, as the player does."""
+    from agents.models import primitives_for
+    from agents.ppo import _dist_of
+
+    m = AVNav(AVNavConfig(primitives=primitives_for(2))).eval()
+    logits = torch.log(torch.tensor([[0.4, 0.3, 0.2, 0.1] + [1e-3] * 12]))
+    allowed = torch.zeros(1, 16, dtype=torch.bool)
+    allowed[0, [1, 3]] = True
+    pi = _dist_of(m, logits, allowed)
+    torch.manual_seed(0)
+    draws = pi.sample((4000,))[:, 0]
+    assert set(draws.tolist()) == {1, 3}
+    assert abs(float((draws == 1).float().mean()) - 0.75) < 0.03  # 0.3 / (0.3 + 0.1), 4 standard errors
+    assert torch.allclose(pi.log_prob(torch.tensor([1])), torch.log(torch.tensor([0.75])), atol=1e-5)
+    free = _dist_of(m, logits, torch.zeros(1, 16, dtype=torch.bool))  # nothing allowed: nothing removed
+    assert torch.allclose(free.probs, _dist_of(m, logits).probs)
+
+
 def test_ppo_critic_warmup_leaves_the_policy_as_imitation_left_it(tmp_path, made, audiogoal_imitation):
     from agents.ppo import PPOConfig, train as train_ppo
     from sonicverse_core.tasks.episodes import homes

@@ -144,13 +144,12 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     trains (here on the scripted follower's actions, `--teacher scripted`), its checkpoint records the map's shape
     and kind, and the harness plays it with the sensors it needs (the raw audio block for the belief). On AudioGoal
     it reads the map the robot draws (NavEgoMap). Elsewhere `--map`, and `--teacher scripted` without the
-    follower's map, are one line and exit 2, and PPO does not take such a policy."""
+    follower's map, are one line and exit 2. PPO fine-tunes such a policy with its map and floor shield."""
     from agents.following import EgoMap
     from agents.imitation import SENSORS, ego_for, floor_shield, sensors_for
     from agents.navmap import NavEgoMap
     from agents.ppo import PPOConfig, train as train_ppo
     from app.tasks.run import run_task
-    from sonicverse_core.errors import ConfigError
 
     cfg = ImitationConfig(task="SpeakerFollowing", frames=80, iterations=1, val_episodes=0, epochs=1, seed=3,
                           rollout_steps=40, egomap=True, teacher="scripted", learner="drawn")
@@ -183,9 +182,15 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     r = cli("train", "--recipe", "ppo", "--learner", "drawn", "--frames", "100", "--out", str(tmp_path / "z"),
             check_rc=2)
     assert "--learner is for" in r.stderr and len(r.stderr.strip().splitlines()) == 1
-    with pytest.raises(ConfigError, match="egocentric map"):
-        train_ppo(PPOConfig(task="SpeakerFollowing", frames=16, envs=1, init=str(tmp_path / "m" / "model.pt")),
-                  tmp_path / "p")
+    # PPO fine-tunes a map policy as it plays: its map drawn per env and the floor shield's mask, replayed in the
+    # update (before the first step every probability ratio is 1: a map or mask not replayed would move it)
+    res = train_ppo(PPOConfig(task="SpeakerFollowing", frames=32, envs=1, steps=16, val_episodes=0, critic_warmup=1,
+                              init=str(tmp_path / "m" / "model.pt")), tmp_path / "p")
+    assert len(res["log"]) == 2 and all(r["replay_err"] < 1e-4 for r in res["log"]), res["log"]
+    tuned, tmeta = load(tmp_path / "p" / "model.pt")
+    assert tuned.cfg.map_shape == model.cfg.map_shape and tmeta["recipe"] == "ppo"
+    r = cli("train", "--val-every", "5", "--frames", "100", "--out", str(tmp_path / "w"), check_rc=2)
+    assert "--val-every and --critic-warmup belong to --recipe ppo" in r.stderr
 
 
 def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli, policy_batch, capsys):
