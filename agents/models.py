@@ -383,6 +383,28 @@ def load_ensemble(path) -> tuple[PolicyEnsemble, dict]:
     return ens, ck.get("meta", {})
 
 
+def unpack_ensemble(path, out_dir) -> list[str]:
+    """Each member of the ensemble in ``path`` as a checkpoint of its own, ``out_dir/member{k}.pt`` (its weights
+    as the ensemble stores them, its own training meta): what PPO fine-tunes, or another ensemble joins. Refuses a
+    file that is not an ensemble and members that exist already. Returns the paths written."""
+    from pathlib import Path
+
+    from sonicverse_core.errors import ConfigError
+    from sonicverse_core.storage import atomic_write
+
+    load_ensemble(path)  # a missing, damaged or foreign file: one clear line
+    members = torch.load(path, map_location="cpu", weights_only=False)["members"]
+    out = [Path(out_dir) / f"member{k}.pt" for k in range(len(members))]
+    for q in out:
+        if q.exists():
+            raise ConfigError(f"{q} exists: give another --out")
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    for m, q in zip(members, out):
+        with atomic_write(q) as f:
+            torch.save({"arch": m["arch"], "config": m["config"], "state": m["state"], "meta": m.get("meta", {})}, f)
+    return [str(q) for q in out]
+
+
 def _file_arch(path) -> str | None:
     """The checkpoint's "arch", read without loading its tensors (memory-mapped)."""
     try:

@@ -196,8 +196,8 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
 def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli, policy_batch, capsys):
     """`train --ensemble A.pt B.pt`: one float16 file; where av-nav is expected it loads as a PolicyEnsemble whose
     action distribution is the mean of its members' (each with its own GRU state, stepping as it would alone), and
-    the harness plays it. Members of another configuration or task, a single member, an existing file: one line,
-    exit 2."""
+    the harness plays it; `train --unpack` gives each member back as its own checkpoint. Members of another
+    configuration or task, a single member, an existing file: one line, exit 2."""
     from agents.imitation import _policy_step
     from agents.models import PolicyEnsemble, load_policy, primitives_for
     from app.tasks.run import run_task
@@ -267,6 +267,18 @@ def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli
 
     with pytest.raises(ConfigError, match="ensemble"):
         train_ppo(PPOConfig(task="AudioGoal", frames=16, envs=1, init=res["checkpoint"]), tmp_path / "p")
+    # `train --unpack`: each member back as its own checkpoint (the weights the ensemble stores, its own meta)
+    assert main(["train", "--unpack", res["checkpoint"], "--out", str(tmp_path / "k")]) == 0
+    for k, src in enumerate(paths):
+        mine, mmeta = load(tmp_path / "k" / f"member{k}.pt")
+        assert mmeta["config"]["seed"] == k
+        assert all(torch.equal(v, ens.members[k].state_dict()[n]) for n, v in mine.state_dict().items())
+    capsys.readouterr()
+    assert "exists" in refused("train", "--unpack", res["checkpoint"], "--out", str(tmp_path / "k"))
+    assert "not a Sonicverse policy ensemble" in refused("train", "--unpack", str(paths[0]), "--out",
+                                                         str(tmp_path / "j"))
+    assert "no training flags" in refused("train", "--unpack", res["checkpoint"], "--map", "--out",
+                                          str(tmp_path / "i"))
 
 
 def test_an_ensembles_temperature_sharpens_its_draw_and_lives_in_its_checkpoint(tmp_path, capsys):

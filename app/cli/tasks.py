@@ -42,6 +42,8 @@ def cmd_train(a) -> int:
 
     from sonicverse_core.errors import ConfigError
 
+    if a.unpack:
+        return _unpack_ensemble(a)
     if a.ensemble:
         return _train_ensemble(a)
     if a.temperature is not None:
@@ -164,6 +166,18 @@ def _train_ensemble(a) -> int:
     res = {"checkpoint": str(out), "members": meta["members"], "task": a.task, "temperature": meta["temperature"],
            "bytes": out.stat().st_size}
     print(json.dumps(res) if a.json else res["checkpoint"])
+    return 0
+
+
+def _unpack_ensemble(a) -> int:
+    """``train --unpack ENSEMBLE.pt``: no training; each member as its own checkpoint, --out/member{k}.pt."""
+    from agents.models import unpack_ensemble
+    from sonicverse_core.errors import ConfigError
+
+    if a.ensemble or a.init or a.resume or a.map or a.temperature is not None or a.recipe != "dagger":
+        raise ConfigError("--unpack writes an ensemble's members as they are: no training flags")
+    paths = unpack_ensemble(a.unpack, a.out)
+    print(json.dumps({"members": paths}) if a.json else "\n".join(paths))
     return 0
 
 
@@ -423,6 +437,9 @@ def add_task_commands(sub, bench_sub) -> None:
                    help="train nothing: join these av-nav checkpoints of --task (one configuration, e.g. the same "
                    "recipe from several --seed) into one policy acting on the mean of their action distributions, "
                    "written to --out/best.pt as float16")
+    t.add_argument("--unpack", type=A.in_file(".pt"), metavar="PT", default=None,
+                   help="train nothing: write each member of this ensemble (train --ensemble) as its own checkpoint, "
+                   "--out/member0.pt, member1.pt, ...")
     t.add_argument("--temperature", type=A.number(0.05, 10), default=None,
                    help="with --ensemble: the player draws from the mean distribution raised to 1 / T (below 1, "
                    "nearer the most likely action; default 1)")
