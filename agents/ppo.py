@@ -9,6 +9,11 @@ the first ``critic_warmup`` updates train the value head alone) or from scratch.
 ``kl_init`` x KL(the starting policy || the policy) on the rollouts' states: a first run without it (entropy bonus
 0.01) drifted away from the imitation policy and lost all its successes within 56k frames.
 
+A policy with a map input (``train --map``) is fine-tuned as it plays: each env has its own egocentric map
+(:func:`agents.imitation.ego_for`), drawn once per observation, and where the policy reads the task's floor plan the
+floor shield's allowed actions mask its distribution in the rollouts, the update and the KL alike. Each log row's
+``replay_err`` is the largest |ratio - 1| of the update's first pass, before any step: the update replays what acted.
+
 **Beyond one process (DD-PPO, Wijmans et al. 2020)**: launched by ``torchrun --nproc_per_node=K -m agents.train``
 (or ``sonicverse train --nproc K``), every process collects its own rollouts and the gradients are averaged with
 ``torch.distributed`` (gloo on CPU, NCCL on CUDA) after each backward pass, so the weights stay identical. Stragglers

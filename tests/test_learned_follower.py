@@ -190,7 +190,7 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     tuned, tmeta = load(tmp_path / "p" / "model.pt")
     assert tuned.cfg.map_shape == model.cfg.map_shape and tmeta["recipe"] == "ppo"
     r = cli("train", "--val-every", "5", "--frames", "100", "--out", str(tmp_path / "w"), check_rc=2)
-    assert "--val-every and --critic-warmup belong to --recipe ppo" in r.stderr
+    assert "--val-every, --critic-warmup and --lr belong to --recipe ppo" in r.stderr
 
 
 def test_an_ensemble_acts_on_the_mean_of_its_members_distributions(tmp_path, cli, policy_batch, capsys):

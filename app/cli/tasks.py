@@ -62,8 +62,9 @@ def cmd_train(a) -> int:
         raise ConfigError("--resume is for --recipe dagger (a PPO run starts from --init)")
     if a.recipe != "ppo" and (a.nproc > 1 or a.init):
         raise ConfigError("--nproc and --init belong to --recipe ppo (DD-PPO fine-tuning)")
-    if a.recipe != "ppo" and (a.val_every != 20 or a.critic_warmup != 10):
-        raise ConfigError("--val-every and --critic-warmup belong to --recipe ppo (DAgger validates every iteration)")
+    if a.recipe != "ppo" and (a.val_every != 20 or a.critic_warmup != 10 or a.lr is not None):
+        raise ConfigError("--val-every, --critic-warmup and --lr belong to --recipe ppo (DAgger validates every "
+                          "iteration at its own rate)")
     if a.recipe == "ppo" and a.agent in ("savi", "multitask") and not a.init:
         raise ConfigError(f"{a.agent} is fine-tuned by PPO from its imitation: give --init best.pt")
     if a.nproc > 1 and "LOCAL_RANK" not in os.environ:  # launch the processes, as torchrun would
@@ -73,6 +74,7 @@ def cmd_train(a) -> int:
                 str(a.envs), "--size", str(a.size), "--val-episodes", str(a.val_episodes), "--seed", str(a.seed),
                 "--head", a.head, "--out", a.out, "--preempt", str(a.preempt), "--kl-init", str(a.kl_init),
                 "--val-every", str(a.val_every), "--critic-warmup", str(a.critic_warmup), "--device", a.device]
+        argv += ["--lr", str(a.lr)] if a.lr is not None else []
         argv += (["--init", a.init] if a.init else []) + (["--homes", str(a.homes)] if a.homes else [])
         argv += ["--json"] if a.json else []
         cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={a.nproc}",
@@ -99,7 +101,8 @@ def cmd_train(a) -> int:
 
         cfg = PPOConfig(task=a.task, frames=a.frames, envs=a.envs, size=a.size, val_episodes=a.val_episodes,
                         seed=a.seed, init=a.init, head=a.head, preempt=a.preempt, kl_init=a.kl_init, device=a.device,
-                        homes=a.homes or 0, val_every=a.val_every, critic_warmup=a.critic_warmup)
+                        homes=a.homes or 0, val_every=a.val_every, critic_warmup=a.critic_warmup,
+                        **({} if a.lr is None else {"lr": a.lr}))
         res = train_ppo(cfg, a.out, progress=progress)
         if res["rank"] != 0:
             return 0
@@ -400,6 +403,8 @@ def add_task_commands(sub, bench_sub) -> None:
                    help="PPO: updates between validations (default: %(default)s)")
     t.add_argument("--critic-warmup", type=A.count(0, 10**6), default=10,
                    help="PPO from --init: first updates that train the value head alone (default: %(default)s)")
+    t.add_argument("--lr", type=A.number(1e-8, 1.0), default=None,
+                   help="PPO: Adam's learning rate (default: 2.5e-5)")
     t.add_argument("--agent", default="av-nav", choices=("av-nav", "savi", "multitask", "sound-localizer"),
                    help="the model: the AV-Nav policy, SAVi, the multi-task model (SAVi + occupancy anticipation), "
                    "or the gan baseline's sound localiser (default: %(default)s)")
