@@ -210,6 +210,11 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         raise ConfigError(f"{out / 'model.pt'} exists: choose another --out")
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng([cfg.seed, dist.rank])
+
+    def make_envs(sensors):
+        return [make_env(cfg.task, split="train", sensors=sensors, width=cfg.size, height=cfg.size,
+                         homes=cfg.homes or None) for _ in range(cfg.envs)]
+
     if cfg.init:
         model, meta = load_policy(cfg.init)  # AV-Nav, SAVi or the multi-task model
         from agents.learned import check_trained_on
@@ -220,17 +225,12 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                               "fine-tune one of its members")
         if hasattr(model, "stage"):
             model.stage(2)  # SAVi's second stage: the full memory, the encoders frozen
-        if getattr(model.cfg, "map_shape", ()) and hasattr(model, "stage"):
-            raise ConfigError(f"{cfg.init}: PPO fine-tunes map policies of av-nav only")
         size = model.cfg.depth_hw[0]
         if size != cfg.size:
             raise ConfigError(f"{cfg.init} was trained on {size} px depth, not --size {cfg.size}")
-        # a map policy (train --map) acts on its map, drawn per env as it plays, through the floor shield
-        envs = [make_env(cfg.task, split="train", sensors=sensors_for(model), width=cfg.size, height=cfg.size,
-                         homes=cfg.homes or None) for _ in range(cfg.envs)]
+        envs = make_envs(sensors_for(model))  # a map policy's: what its map listens to (train --map)
     else:
-        envs = [make_env(cfg.task, split="train", sensors=SENSORS, width=cfg.size, height=cfg.size,
-                         homes=cfg.homes or None) for _ in range(cfg.envs)]
+        envs = make_envs(SENSORS)
         adim = envs[0].action_space.shape[0]
         model = AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=envs[0].observation_space[
             "spectrogram"].shape, action_dim=adim, primitives=primitives_for(adim) if cfg.head == "discrete" else ()))
