@@ -333,7 +333,7 @@ def write_ensemble(paths, out, half: bool = True, task: str | None = None, tempe
     from sonicverse_core.storage import atomic_write
 
     for p in paths:
-        if Path(p).is_file() and torch.load(p, map_location="cpu", weights_only=False).get("arch") == "ensemble":
+        if Path(p).is_file() and _file_arch(p) == "ensemble":
             raise ConfigError(f"{p} is an ensemble already: join its members' own checkpoints")
     models, metas = zip(*(load(p) for p in paths))
     PolicyEnsemble(list(models))  # the members agree (one configuration, discrete heads), or a ConfigError says why
@@ -360,6 +360,13 @@ def write_ensemble(paths, out, half: bool = True, task: str | None = None, tempe
 
 def load_ensemble(path) -> tuple[PolicyEnsemble, dict]:
     """(:class:`PolicyEnsemble` in eval mode, meta) from a file :func:`write_ensemble` wrote."""
+    ens, ck = _read_ensemble(path)
+    return ens, ck.get("meta", {})
+
+
+def _read_ensemble(path) -> tuple[PolicyEnsemble, dict]:
+    """(:class:`PolicyEnsemble` in eval mode, the file's whole content) of a file :func:`write_ensemble` wrote; a
+    missing, damaged or foreign file is a ConfigError."""
     from pathlib import Path
 
     from sonicverse_core.errors import ConfigError
@@ -380,7 +387,7 @@ def load_ensemble(path) -> tuple[PolicyEnsemble, dict]:
         raise ConfigError(f"{p} is not a Sonicverse policy ensemble ({type(exc).__name__}: {exc})") from None
     ens = PolicyEnsemble(models)
     ens.eval()
-    return ens, ck.get("meta", {})
+    return ens, ck
 
 
 def unpack_ensemble(path, out_dir) -> list[str]:
@@ -392,8 +399,7 @@ def unpack_ensemble(path, out_dir) -> list[str]:
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.storage import atomic_write
 
-    load_ensemble(path)  # a missing, damaged or foreign file: one clear line
-    members = torch.load(path, map_location="cpu", weights_only=False)["members"]
+    members = _read_ensemble(path)[1]["members"]  # a missing, damaged or foreign file: one clear line
     out = [Path(out_dir) / f"member{k}.pt" for k in range(len(members))]
     for q in out:
         if q.exists():

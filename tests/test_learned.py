@@ -330,13 +330,9 @@ def audiogoal_imitation(tmp_path_factory):
     """One imitation-trained AudioGoal AV-Nav as its own checkpoint: the shipped ensemble's first member (PPO starts
     from one policy, not an ensemble)."""
     from agents.learned import default_checkpoint
-    from agents.models import load_ensemble
+    from agents.models import unpack_ensemble
 
-    ens, meta = load_ensemble(default_checkpoint("av-nav", "AudioGoal"))
-    path = tmp_path_factory.mktemp("ag") / "member0.pt"
-    raw = torch.load(default_checkpoint("av-nav", "AudioGoal"), map_location="cpu", weights_only=False)
-    save(ens.members[0].float(), path, raw["members"][0]["meta"])
-    return path
+    return unpack_ensemble(default_checkpoint("av-nav", "AudioGoal"), tmp_path_factory.mktemp("ag"))[0]
 
 
 def test_ppo_fine_tunes_a_checkpoint_and_validates(tmp_path, audiogoal_imitation):
