@@ -193,8 +193,8 @@ class _Maps:
 
 
 def train(cfg: PPOConfig, out, progress=None) -> dict:
-    """Run PPO for ``cfg.frames`` frames (all processes together); rank 0 writes ``out/model.pt`` (each
-    validation), ``out/best.pt`` (the best validation SR + SPL) and ``out/log.csv``."""
+    """Run PPO for ``cfg.frames`` frames (all processes together); rank 0 writes ``out/model.pt`` (every
+    ``val_every`` updates, validated or not: an interrupted run keeps it), ``out/best.pt`` (the best validation SR + SPL) and ``out/log.csv``."""
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks import make_env
 
@@ -365,7 +365,8 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                 stats.append((float(pg.detach()), float(vl.detach()), float(ent.detach()),
                               float(((ratio - 1).abs() > cfg.clip).float().mean()), float(kl.detach())))
             h, h_ref = h.detach(), h_ref.detach()
-            validate = cfg.val_episodes and ((u + 1) % cfg.val_every == 0 or u == updates - 1)
+            due = (u + 1) % cfg.val_every == 0 or u == updates - 1  # model.pt is written, with or without validation
+            validate = cfg.val_episodes and due
             row = None
             if dist.rank == 0:
                 model.eval()
@@ -383,7 +384,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
                        "wall_s": round(time.perf_counter() - t0, 1)}
                 rows.append(row)
                 append_row(log_path, row, first=u == 0)
-                if validate or u == updates - 1:
+                if due:
                     meta = {"recipe": "ppo", "config": asdict(cfg), "log": rows, "update": u}
                     save(model, out / "model.pt", meta)
                     score = sum(v or 0.0 for v in val.values())

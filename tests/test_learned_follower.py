@@ -184,9 +184,12 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     assert "--learner is for" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     # PPO fine-tunes a map policy as it plays: its map drawn per env and the floor shield's mask, replayed in the
     # update (before the first step every probability ratio is 1: a map or mask not replayed would move it)
+    kept = []  # model.pt is on disk after every val_every updates, without validation too (an interruption keeps it)
     res = train_ppo(PPOConfig(task="SpeakerFollowing", frames=32, envs=1, steps=16, val_episodes=0, critic_warmup=1,
-                              init=str(tmp_path / "m" / "model.pt")), tmp_path / "p")
+                              val_every=1, init=str(tmp_path / "m" / "model.pt")), tmp_path / "p",
+                    progress=lambda row: kept.append((tmp_path / "p" / "model.pt").exists()))
     assert len(res["log"]) == 2 and all(r["replay_err"] < 1e-4 for r in res["log"]), res["log"]
+    assert kept == [True, True]
     tuned, tmeta = load(tmp_path / "p" / "model.pt")
     assert tuned.cfg.map_shape == model.cfg.map_shape and tmeta["recipe"] == "ppo"
     r = cli("train", "--val-every", "5", "--frames", "100", "--out", str(tmp_path / "w"), check_rc=2)
