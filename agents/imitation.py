@@ -36,7 +36,10 @@ SENSORS = ("depth", "spectrogram", "pose")
 MAP_SENSORS = SENSORS + ("audio",)  # a policy with a map input: EgoMap listens to the raw block
 
 
-MAP_TASKS = {"SpeakerFollowing": "follow", "AudioGoal": "nav", "SemanticAudioNav": "nav"}  # train --map: which map
+MAP_TASKS = {"SpeakerFollowing": "follow", "AudioGoal": "nav", "SemanticAudioNav": "sem"}  # train --map: which map
+#: the env sensors a policy with each kind of map acts on (EgoMap listens to the raw block; SemNavMap reads the
+#: semantic camera)
+MAP_KIND_SENSORS = {"follow": MAP_SENSORS, "nav": SENSORS, "sem": SENSORS + ("semantic",)}
 
 
 def _map_kind(model) -> str | None:
@@ -45,19 +48,20 @@ def _map_kind(model) -> str | None:
 
 def sensors_for(model) -> tuple:
     """The env sensors ``model`` acts on."""
-    return MAP_SENSORS if _map_kind(model) == "follow" else SENSORS
+    return MAP_KIND_SENSORS.get(_map_kind(model), SENSORS)
 
 
 def map_class(kind: str):
     """The map a ``map_kind`` names: "follow" :class:`agents.following.EgoMap` (speaker following, from the task's
-    floor plan), "nav" :class:`agents.navmap.NavEgoMap` (navigation, built from depth, sound and odometry)."""
+    floor plan), "nav" :class:`agents.navmap.NavEgoMap` (navigation, built from depth, sound and odometry), "sem"
+    :class:`agents.navmap.SemNavMap` (SemanticAudioNav: that and where the camera saw the category the ears name)."""
     if kind == "follow":
         from agents.following import EgoMap
 
         return EgoMap
-    from agents.navmap import NavEgoMap
+    from agents.navmap import NavEgoMap, SemNavMap
 
-    return NavEgoMap
+    return SemNavMap if kind == "sem" else NavEgoMap
 
 
 def ego_for(model):
@@ -497,8 +501,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    follow = cfg.egomap and MAP_TASKS.get(cfg.task) == "follow"  # EgoMap listens to the raw audio block
-    env = make_env(cfg.task, split="train", sensors=MAP_SENSORS if follow else SENSORS, width=cfg.size,
+    sensors = MAP_KIND_SENSORS[MAP_TASKS[cfg.task]] if cfg.egomap else SENSORS
+    env = make_env(cfg.task, split="train", sensors=sensors, width=cfg.size,
                    height=cfg.size, homes=cfg.homes or None)
     spec = env.observation_space["spectrogram"].shape
     adim = env.action_space.shape[0]

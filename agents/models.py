@@ -20,8 +20,9 @@ predictor) and are not used to act.
 With ``map_shape`` (``sonicverse train --map``) a third CNN reads an egocentric map whose features join the GRU's
 input: on speaker following (``map_kind`` "follow") :class:`agents.following.EgoMap` (the floor plan, a belief of
 where the person is from the robot's own ears and camera, who the camera saw, the route the scripted follower would
-take); on AudioGoal and SemanticAudioNav ("nav") :class:`agents.navmap.NavEgoMap` (what the robot mapped itself:
-obstacles and floor from depth, how loud the sound was where it stood, its track).
+take); on AudioGoal ("nav") :class:`agents.navmap.NavEgoMap` (what the robot mapped itself: obstacles and floor
+from depth, how loud the sound was where it stood, its track); on SemanticAudioNav ("sem")
+:class:`agents.navmap.SemNavMap` (that, and where the semantic camera saw the category the robot's ears name).
 """
 from __future__ import annotations
 
@@ -45,7 +46,8 @@ class AVNavConfig:
     primitives: tuple = ()  # () : the continuous head; else the discrete head's wheel-velocity pairs (+ stop)
     aux_goal: bool = False  # the goal-prediction heads (auxiliary loss)
     map_shape: tuple = ()  # (C, H, W) of an egocentric map input, () for none
-    map_kind: str = "follow"  # which map: "follow" agents.following.EgoMap, "nav" agents.navmap.NavEgoMap
+    map_kind: str = "follow"  # which map: "follow" agents.following.EgoMap, "nav" agents.navmap.NavEgoMap, "sem"
+    # agents.navmap.SemNavMap
 
 
 def primitives_for(action_dim: int) -> tuple:

@@ -11,6 +11,7 @@ the spectrogram and the odometry pose are the policy's own inputs.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -81,6 +82,7 @@ class NavEgoMap:
         idx = self._cell(np.stack([wx.ravel(), wy.ravel()], 1))
         ok = (idx >= 0).all(1) & (idx < self.n).all(1)
         r, q = np.clip(idx[:, 0], 0, self.n - 1), np.clip(idx[:, 1], 0, self.n - 1)
+        self._window = (r, q, ok)  # the world cells under the image's pixels (SemNavMap draws its channel there)
         img = self.image
         shape = (self.SIZE, self.SIZE)
         img[0] = ((self.occ[r, q] >= 2) & ok).reshape(shape) * np.uint8(255)
@@ -97,3 +99,119 @@ class NavEgoMap:
         age = self.t - self.track[r, q]
         img[3] = np.round(255 * np.clip(1.0 - age / self.TRACK_S, 0.0, 1.0) * ok).reshape(shape).astype(np.uint8)
         return img
+
+
+#: the sound classifier :class:`SemNavMap` names a goal's category with: the shipped SAVi's goal predictor
+CLASSIFIER = Path(__file__).resolve().parent / "checkpoints" / "savi_AudioGoal.pt"
+_classifier: dict = {}
+
+
+def sound_classifier(path=CLASSIFIER):
+    """``f(spectrogram) -> log-probabilities over assets_manifest.soundbank.CATEGORIES`` from a SAVi checkpoint's goal
+    predictor (its spectrogram CNN and category head; loaded once per process and path, frozen)."""
+    import torch
+
+    key = str(path)
+    if key not in _classifier:
+        from agents.models import SPEC_MAX, acting_threads
+        from agents.savi import load
+
+        model, _ = load(path, "savi")
+        model.eval()
+        if model.category is None:
+            from sonicverse_core.errors import ConfigError
+
+            raise ConfigError(f"{path} has no category head to name a sound with")
+        net, head = model.goal_net, model.category
+
+        def classify(spec) -> np.ndarray:
+            # quantised as the policies see it (agents.imitation._quantise), then the predictor's own scaling
+            q = np.clip(np.round(np.asarray(spec, np.float32) / SPEC_MAX * 255), 0, 255) * (1.0 / 255)
+            with torch.no_grad(), acting_threads():
+                x = torch.from_numpy(q.astype(np.float32))[None]
+                return torch.log_softmax(head(net(x)).double(), -1)[0].numpy()
+
+        _classifier[key] = classify
+    return _classifier[key]
+
+
+class SemNavMap(NavEgoMap):
+    """:class:`NavEgoMap` with a fifth channel for SemanticAudioNav (``train --map`` there; ``map_kind`` "sem"):
+
+    4. where the semantic camera has seen an object of the category the robot's ears name (255), else 0.
+
+    The category is the robot's own estimate: while the goal sounds (the spectrogram's mean above
+    ``agents.savi.AUDIBLE``), the shipped SAVi's goal predictor (:func:`sound_classifier`, trained on AudioGoal's heard
+    sounds in train homes) scores the 15 categories each step; the scores add up as log-likelihoods, and the channel
+    shows the best one's sightings (empty until something is heard). It keeps the estimate after the sound stops.
+    Sightings: every second pixel of the semantic image whose category is one of the 15, projected with its depth
+    (any height) into the world grid, a bit per category per cell. The camera's category ids are ground truth (the
+    scene's labels, as Habitat's semantic sensor), a stand-in for an object detector on RGB: what the paper's agents
+    learn from RGB, this map is told."""
+
+    CHANNELS = 5
+
+    def reset(self, env, obs, info) -> None:
+        super().reset(env, obs, info)
+        from assets_manifest.soundbank import CATEGORIES
+        from sonicverse_core.sensors.camera import CLASSES
+
+        self.bit = np.array([CLASSES.index(c) for c in CATEGORIES], np.int64)  # a cell's bit per category
+        self.lut = np.zeros(len(CLASSES), np.int64)  # a camera class id -> its category's bit mask (0: none)
+        self.lut[self.bit] = np.int64(1) << self.bit
+        self.seen = np.zeros((self.n, self.n), np.int64)
+        self.score = np.zeros(len(CATEGORIES))
+        self.heard = 0
+        self.classify = sound_classifier()
+
+    def category(self) -> int:
+        """The index (into CATEGORIES) of the category the ears name so far, -1 before anything was heard."""
+        return int(np.argmax(self.score)) if self.heard else -1
+
+    def observe(self, obs, info) -> np.ndarray:
+        from agents.savi import AUDIBLE
+
+        if "semantic" not in obs:
+            from sonicverse_core.errors import ConfigError
+
+            raise ConfigError("the semantic map needs the env's 'semantic' sensor")
+        img = super().observe(obs, info)
+        spec = np.asarray(obs["spectrogram"])
+        if float(spec.mean()) > AUDIBLE:
+            self.score += self.classify(spec)
+            self.heard += 1
+        x, y, s, c = (float(v) for v in obs["pose"])
+        if "depth" in obs:
+            map_semantic(self.seen, np.asarray(obs["depth"])[..., 0], np.asarray(obs["semantic"])[..., 0], self.lut,
+                         (x, y), math.degrees(math.atan2(s, c)), self.fx, self.camera_height, self.RES)
+        k = self.category()
+        r, q, ok = self._window
+        if k < 0:
+            img[4] = 0
+        else:
+            hit = ((self.seen[r, q] >> self.bit[k]) & 1).astype(bool) & ok
+            img[4] = hit.reshape(self.SIZE, self.SIZE) * np.uint8(255)
+        return img
+
+
+def map_semantic(seen: np.ndarray, depth: np.ndarray, sem: np.ndarray, lut: np.ndarray, p, yaw: float, fx: float,
+                 camera_height: float, cell: float, stride: int = 2) -> None:
+    """OR each category's bit (``lut[class id]``) into the cells of ``seen`` (cells of ``cell`` m centred on the
+    odometry origin) where every ``stride``-th pixel of the semantic image ``sem`` lands, by its ``depth``, seen from
+    pose ``p`` (x, y), ``yaw`` degrees (as :func:`agents.scripted.map_depth`)."""
+    H, W = depth.shape
+    rows, cols = np.arange(0, H, stride), np.arange(0, W, stride)
+    z = depth[np.ix_(rows, cols)]
+    bits = lut[np.clip(sem[np.ix_(rows, cols)], 0, len(lut) - 1)]
+    ok = (z > 0.1) & (bits != 0)
+    if not np.any(ok):
+        return
+    u = (cols[None, :] - W / 2 + 0.5) / fx
+    fwd, left = z, -u * z
+    a = math.radians(yaw)
+    wx = p[0] + math.cos(a) * fwd - math.sin(a) * left
+    wy = p[1] + math.sin(a) * fwd + math.cos(a) * left
+    size = seen.shape[0]
+    idx = np.floor(np.stack([wx[ok], wy[ok]], 1) / cell).astype(int) + size // 2
+    good = (idx >= 0).all(1) & (idx < size).all(1)
+    np.bitwise_or.at(seen, (idx[good, 0], idx[good, 1]), bits[ok][good])

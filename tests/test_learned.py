@@ -503,6 +503,77 @@ def test_the_navigators_map_draws_what_depth_saw_and_is_louder_nearer_the_sound(
     assert np.median(rhos) <= -0.5 and max(rhos) < 0, rhos
 
 
+def test_map_semantic_puts_each_category_where_depth_says_it_is():
+    """agents.navmap.map_semantic: a sofa straight ahead at 2 m, seen facing +y (yaw 90), lands 2 m along +y of
+    the robot with the sofa's bit and no other; pixels of no category (walls) and without depth mark nothing."""
+    from agents.navmap import map_semantic
+    from sonicverse_core.sensors.camera import CLASSES
+
+    H = W = 8
+    depth = np.full((H, W), 2.0)
+    depth[:, :2] = 0.0  # no return
+    sem = np.full((H, W), CLASSES.index("wall"))
+    sem[:, 3:5] = CLASSES.index("sofa")
+    lut = np.zeros(len(CLASSES), np.int64)
+    lut[CLASSES.index("sofa")] = 1 << CLASSES.index("sofa")
+    seen = np.zeros((40, 40), np.int64)
+    map_semantic(seen, depth, sem, lut, (1.0, 0.0), 90.0, fx=4.0, camera_height=0.5, cell=0.25, stride=1)
+    cells = np.argwhere(seen)
+    assert len(cells) and np.all(seen[seen != 0] == lut[CLASSES.index("sofa")])
+    xy = (cells - 20 + 0.5) * 0.25
+    assert np.allclose(xy.mean(0), (1.0, 2.0), atol=0.2) and np.ptp(xy[:, 1]) <= 0.25, xy
+
+
+def test_the_semantic_map_names_the_heard_category_and_marks_where_the_camera_saw_it():
+    """SemNavMap (`train --map` on SemanticAudioNav): the ears name the goal's category (the shipped SAVi's goal
+    predictor, its scores summed over the heard steps: right by the end of these episodes); channel 4 shows only
+    cells within 0.6 m of an object of the category named at the time (drawn back onto the home as in the test above), and when the oracle has reached the goal it
+    shows the goal's object within 1.5 m of the robot."""
+    from agents.imitation import MAP_KIND_SENSORS
+    from agents.navmap import SemNavMap
+    from agents.scripted import OracleAgent
+    from assets_manifest.soundbank import CATEGORIES
+    from sonicverse_core.tasks import make_env
+
+    env = make_env("SemanticAudioNav", split="val", sensors=MAP_KIND_SENSORS["sem"], width=64, height=64)
+    S = SemNavMap.SIZE
+    u = (np.arange(S) + 0.5 - S / 2) * SemNavMap.RES
+    fwd, left = -np.repeat(u[:, None], S, 1), -np.repeat(u[None, :], S, 0)
+    try:
+        for seed in (2, 3):  # (seed 1's goal, a shelf 1.5 m away, is out of the camera's view at the end)
+            obs, info = env.reset(seed=seed)
+            w = env.unwrapped.privileged()["world"]
+            cat = env.unwrapped.episode.category
+            boxes = {c: np.array([o.world_bounds()[:, :2] for o in w.scene.objects if o.category == c])
+                     for c in CATEGORIES}
+            oracle, m = OracleAgent(np.random.default_rng(0)), SemNavMap()
+            oracle.reset(env, obs, info)
+            m.reset(env, obs, info)
+            lit = 0
+            for _ in range(500):
+                img = m.observe(obs, info)
+                assert img.shape == (SemNavMap.CHANNELS, S, S)
+                a = np.radians(w.pose[2])
+                sel = img[4] > 0
+                if sel.any():  # every lit pixel at an object of the category named now
+                    b = boxes[CATEGORIES[m.category()]]
+                    pts = np.stack([w.pose[0] + np.cos(a) * fwd[sel] - np.sin(a) * left[sel],
+                                    w.pose[1] + np.sin(a) * fwd[sel] + np.cos(a) * left[sel]], 1)
+                    gap = np.maximum(np.maximum(b[None, :, 0] - pts[:, None], pts[:, None] - b[None, :, 1]), 0)
+                    assert np.all(np.linalg.norm(gap, axis=2).min(1) <= 0.6)
+                lit += sel.sum()
+                obs, _, term, trunc, info = env.step(oracle.act(obs, info))
+                if term or trunc:
+                    break
+            assert info["metrics"]["success"] == 1.0 and m.heard > 0 and lit > 0
+            img = m.observe(obs, info)
+            assert CATEGORIES[m.category()] == cat  # named right once the sound has been heard out
+            c = S // 2
+            assert img[4, c - 6:c + 6, c - 6:c + 6].any()  # the goal's object, within 1.5 m
+    finally:
+        env.close()
+
+
 def test_an_evaluations_episodes_depend_on_the_seed_and_index_alone(tmp_path):
     """README (AudioGoal over 200 episodes): episode i of a seeded evaluation is the same whatever the number of
     episodes, and a rerun repeats it step for step (the agent's Generator is seeded per episode too)."""

@@ -429,9 +429,9 @@ def add_task_commands(sub, bench_sub) -> None:
                    help="draw training episodes from the first N train homes (default: 16)")
     t.add_argument("--map", action="store_true", help="av-nav: read an egocentric map; on "
                    "SpeakerFollowing the floor plan, the scripted follower's belief of where the person is, who the "
-                   "camera saw, its route; on AudioGoal and SemanticAudioNav what the robot mapped itself: obstacles "
-                   "and floor from depth, how loud the sound was where it stood, its track; trained on --teacher's "
-                   "actions")
+                   "camera saw, its route; on AudioGoal what the robot mapped itself: obstacles and floor from depth, "
+                   "how loud the sound was where it stood, its track; on SemanticAudioNav that and where the "
+                   "semantic camera saw the category its ears name; trained on --teacher's actions")
     t.add_argument("--teacher", choices=("oracle", "scripted"), default="oracle",
                    help="imitation: whose actions the policy learns, the privileged oracle's or (--map on "
                    "SpeakerFollowing) the scripted follower's, which sees what the map shows (default: %(default)s)")
