@@ -11,6 +11,7 @@ import pytest
 import sonicverse_core.tasks  # noqa: F401  (registers the ids)
 from sonicverse_core.errors import ActionError, ConfigError
 from sonicverse_core.tasks import ENV_IDS
+from sonicverse_core.tasks.episodes import in_sight
 from sonicverse_core.tasks.episodes import GOAL_RADIUS, SUCCESS_RADIUS, homes
 from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95, shortest_actions, sna, spl
 
@@ -87,7 +88,8 @@ def test_episodes_follow_the_paper():
         ep = env.episode
         w = env.home.world
         goals = np.array(ep.goals)
-        assert len(goals) == 9 and len({tuple(g) for g in goals}) == 9
+        assert 1 <= len(goals) <= 9 and len({tuple(g) for g in goals}) == len(goals)
+        assert in_sight(w.scene, w.scene.object(ep.object_name), goals).all()  # no wall hides the object
         obj = w.scene.object(ep.object_name)
         assert obj.category == ep.category
         lo, hi = obj.world_bounds()[:, :2]
@@ -103,6 +105,29 @@ def test_episodes_follow_the_paper():
     assert unheard.episode.sound.endswith("/3")
     # homes of the splits never overlap
     assert not set(homes("train", 50)) & set(homes("test", 50))
+
+
+def test_a_terminal_position_behind_a_wall_is_dropped():
+    """A shelf in validation home 1 (SemanticAudioNav's episode 1 there): of the positions within 1 m of its
+    footprint, one lies behind a wall, in the next room. in_sight drops it and keeps those that see the shelf, and
+    the episode no longer has it: the oracle used to stop there, out of sight of the shelf, and succeed."""
+    from sonicverse_core.tasks import make_env
+    from sonicverse_core.tasks.episodes import GOAL_RADIUS
+
+    env = make_env("SemanticAudioNav", split="val", sensors=("pose",))
+    env.reset(seed=1)
+    w, ep = env.unwrapped.home.world, env.unwrapped.episode
+    shelf = w.scene.object(ep.object_name)
+    assert shelf.category == "shelf"
+    lo, hi = shelf.world_bounds()
+    seen, behind = np.array([[6.48, 10.42], [6.38, 10.02], [6.18, 8.32], [7.08, 8.48]]), np.array([[5.28, 8.62]])
+    for p in (seen, behind):  # all within reach of the footprint, and on the floor
+        assert np.all(np.linalg.norm(np.maximum(np.maximum(lo[:2] - p, p - hi[:2]), 0), axis=1) <= GOAL_RADIUS)
+        assert np.all(w.grid.is_navigable(p))
+    assert in_sight(w.scene, shelf, seen).all() and not in_sight(w.scene, shelf, behind).any()
+    goals = np.array(ep.goals)
+    assert len(goals) and np.linalg.norm(goals - behind, axis=1).min() > SUCCESS_RADIUS
+    env.close()
 
 
 def test_sound_stops_after_its_duration():

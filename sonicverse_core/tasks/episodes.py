@@ -1,5 +1,6 @@
 """Navigation episodes as in the paper: a home, a start pose, a target category and object, eight positions sampled
-within 1 m of the object plus the navigable position nearest to it (success at any of the nine within 0.36 m),
+within 1 m of the object plus the navigable position nearest to it, less those from which a wall hides the object
+(success at any of the rest within 0.36 m),
 a sound of the target's category that plays for a sampled duration and then stops, and a start-goal geodesic
 distance of 1-10 m. Episodes whose goal is unreachable are never generated: every terminal position and the start
 lie in one connected component of the robot's collision map, and the start's geodesic distance is finite.
@@ -45,7 +46,7 @@ class Episode(JsonRecord):
     start: tuple  # (x, y, yaw_deg)
     category: str
     object_name: str
-    goals: tuple  # nine (x, y)
+    goals: tuple  # up to nine (x, y), the object in sight from each
     sound: str  # 'category/variant'
     sound_seconds: float
     source_gain: float = 1.0
@@ -63,9 +64,37 @@ def homes(split: str, n: int | None = None) -> list[str]:
     return [f"builtin:apartment?seed={s}" for s in seeds[:n]]
 
 
-def goal_positions(world, obj, rng: np.random.Generator, k: int = 8) -> np.ndarray | None:
-    """Nine (x, y) terminal positions for object ``obj`` (the navigable cell nearest to it first, then ``k``
-    sampled within GOAL_RADIUS of its footprint), all in one component; None if there are not enough."""
+def in_sight(scene, obj, pts: np.ndarray, caster=None) -> np.ndarray:
+    """(n,) bool: no part of the scene's structure (walls, windows) lies between each (x, y) of ``pts`` and the
+    nearest point of ``obj``'s footprint, at the height of the object's middle (kept within 0.3-1.2 m: a picture on
+    the wall is seen from below it). ``caster``: a :class:`~sonicverse_core.geometry.raycast.RayCaster` over
+    ``scene.static_mesh()`` (built here if None)."""
+    if caster is None:
+        from sonicverse_core.geometry.raycast import RayCaster
+
+        caster = RayCaster(scene.static_mesh())
+    lo, hi = obj.world_bounds()
+    z = float(np.clip((lo[2] + hi[2]) / 2, 0.3, 1.2))
+    pts = np.asarray(pts, float)
+    a = np.c_[pts, np.full(len(pts), z)]
+    b = np.c_[np.clip(pts, lo[:2], hi[:2]), np.full(len(pts), z)]
+    seg = b - a
+    length = np.linalg.norm(seg, axis=1)
+    reach = np.maximum(length - 0.02, 0.0)  # short of the object's face, which may touch a wall
+    ok = reach > 0
+    out = np.ones(len(pts), bool)
+    if ok.any():
+        h = caster.first_hit(a[ok], seg[ok] / length[ok, None], reach[ok])
+        out[ok] = ~(h.distance < reach[ok])
+    return out
+
+
+def goal_positions(world, obj, rng: np.random.Generator, k: int = 8, caster=None) -> np.ndarray | None:
+    """Up to nine (x, y) terminal positions for object ``obj`` (the navigable cell nearest to it first, then ``k``
+    sampled within GOAL_RADIUS of its footprint), all in one component, less those from which a wall hides the
+    object (:func:`in_sight`: a position within 1 m of a shelf may be in the next room, behind the wall the shelf
+    stands against); None if there are not enough, or none in sight. The draws do not depend on which are hidden,
+    so an episode is the same as before that check but for its hidden terminal positions."""
     grid = world.grid
     lo, hi = obj.world_bounds()[:, :2]
     c = grid.config.cell
@@ -90,7 +119,9 @@ def goal_positions(world, obj, rng: np.random.Generator, k: int = 8) -> np.ndarr
     first = int(np.argmin(d))
     rest = np.delete(np.arange(len(pts)), first)
     pick = rng.choice(rest, size=k, replace=False)
-    return np.concatenate([pts[first:first + 1], pts[np.sort(pick)]])
+    out = np.concatenate([pts[first:first + 1], pts[np.sort(pick)]])
+    out = out[in_sight(world.scene, obj, out, caster)]
+    return out if len(out) else None
 
 
 def sample_episode(world, scene_spec: str, split: str, sounds: str, rng: np.random.Generator,
@@ -107,11 +138,14 @@ def sample_episode(world, scene_spec: str, split: str, sounds: str, rng: np.rand
     for o in objs:
         by_cat.setdefault(o.category, []).append(o)
     names = sorted(by_cat)
+    from sonicverse_core.geometry.raycast import RayCaster
+
+    caster = RayCaster(world.scene.static_mesh())  # the walls that hide an object from a terminal position
     while names:
         cat = names[int(rng.integers(len(names)))]
         cands = by_cat[cat]
         obj = cands[int(rng.integers(len(cands)))]
-        goals = goal_positions(world, obj, rng)
+        goals = goal_positions(world, obj, rng, caster=caster)
         ok = np.zeros(0, int)
         if goals is not None:
             field_ = world.grid.distance_field(goals)

@@ -1,15 +1,16 @@
 """The three navigation tasks, run by the generic :class:`~sonicverse_core.tasks.base.TaskEnv`.
 
 ``Sonicverse/AudioGoal-v0``: go to the sounding object (depth + binaural audio); the episode succeeds as soon as
-the robot is within 0.36 m of one of the nine terminal positions. Its sound plays all episode, looped, as
-SoundSpaces' AudioNav does (``AUDIO.EVERLASTING``); ``everlasting=False`` stops it after ``sound_seconds``.
+the robot is within 0.36 m of one of the terminal positions (up to nine, the object in sight from each). Its sound
+plays all episode, looped, as SoundSpaces' AudioNav does (``AUDIO.EVERLASTING``); ``everlasting=False`` stops it
+after ``sound_seconds``.
 ``Sonicverse/AudioPointGoal-v0``: the same with a GPS + compass pointer to the goal.
 ``Sonicverse/SemanticAudioNav-v0``: the paper's task: RGB + depth + audio; the sound stops after ``sound_seconds``
 (4-20 s by default); a third action component > 0 is the stop signal, and only a stop within 0.36 m of a terminal
 position succeeds.
 
 Reward: geodesic progress (m) + ``success_reward`` on success - ``step_penalty`` per step - ``collision_penalty``
-per step with a bump. Privileged state (``env.unwrapped.privileged()``): ``world``, ``goals`` (9, 2),
+per step with a bump. Privileged state (``env.unwrapped.privileged()``): ``world``, ``goals`` (k <= 9, 2),
 ``at_goal`` (within 0.36 m of a terminal position now).
 """
 from __future__ import annotations
