@@ -138,7 +138,8 @@ def sound_classifier(path=CLASSIFIER):
 class SemNavMap(NavEgoMap):
     """:class:`NavEgoMap` with a fifth channel for SemanticAudioNav (``train --map`` there; ``map_kind`` "sem"):
 
-    4. where the semantic camera has seen an object of the category the robot's ears name (255), else 0.
+    4. where the semantic camera has seen an object of the category the robot's ears name (255), else 0: every
+       object of that category (the episode's target is one of them, the one that sounded).
 
     The category is the robot's own estimate: while the goal sounds (the spectrogram's mean above
     ``agents.savi.AUDIBLE``), the shipped SAVi's goal predictor (:func:`sound_classifier`, trained on AudioGoal's heard
