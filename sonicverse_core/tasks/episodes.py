@@ -11,6 +11,7 @@ Homes: built-in apartments, split by seed (train / val / test never share a home
 from __future__ import annotations
 
 import json
+import weakref
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -64,15 +65,25 @@ def homes(split: str, n: int | None = None) -> list[str]:
     return [f"builtin:apartment?seed={s}" for s in seeds[:n]]
 
 
-def in_sight(scene, obj, pts: np.ndarray, caster=None) -> np.ndarray:
-    """(n,) bool: no part of the scene's structure (walls, windows) lies between each (x, y) of ``pts`` and the
-    nearest point of ``obj``'s footprint, at the height of the object's middle (kept within 0.3-1.2 m: a picture on
-    the wall is seen from below it). ``caster``: a :class:`~sonicverse_core.geometry.raycast.RayCaster` over
-    ``scene.static_mesh()`` (built here if None)."""
+_structure_casters = weakref.WeakKeyDictionary()  # scene -> its structure's RayCaster
+
+
+def structure_caster(scene):
+    """A :class:`~sonicverse_core.geometry.raycast.RayCaster` over ``scene.static_mesh()``, built once per scene
+    (a home's episodes share it)."""
+    caster = _structure_casters.get(scene)
     if caster is None:
         from sonicverse_core.geometry.raycast import RayCaster
 
-        caster = RayCaster(scene.static_mesh())
+        caster = _structure_casters[scene] = RayCaster(scene.static_mesh())
+    return caster
+
+
+def in_sight(scene, obj, pts: np.ndarray) -> np.ndarray:
+    """(n,) bool: no part of the scene's structure (walls, windows) lies between each (x, y) of ``pts`` and the
+    nearest point of ``obj``'s footprint, at the height of the object's middle (kept within 0.3-1.2 m: a picture on
+    the wall is seen from below it)."""
+    caster = structure_caster(scene)
     lo, hi = obj.world_bounds()
     z = float(np.clip((lo[2] + hi[2]) / 2, 0.3, 1.2))
     pts = np.asarray(pts, float)
@@ -89,7 +100,7 @@ def in_sight(scene, obj, pts: np.ndarray, caster=None) -> np.ndarray:
     return out
 
 
-def goal_positions(world, obj, rng: np.random.Generator, k: int = 8, caster=None) -> np.ndarray | None:
+def goal_positions(world, obj, rng: np.random.Generator, k: int = 8) -> np.ndarray | None:
     """Up to nine (x, y) terminal positions for object ``obj`` (the navigable cell nearest to it first, then ``k``
     sampled within GOAL_RADIUS of its footprint), all in one component, less those from which a wall hides the
     object (:func:`in_sight`: a position within 1 m of a shelf may be in the next room, behind the wall the shelf
@@ -120,7 +131,7 @@ def goal_positions(world, obj, rng: np.random.Generator, k: int = 8, caster=None
     rest = np.delete(np.arange(len(pts)), first)
     pick = rng.choice(rest, size=k, replace=False)
     out = np.concatenate([pts[first:first + 1], pts[np.sort(pick)]])
-    out = out[in_sight(world.scene, obj, out, caster)]
+    out = out[in_sight(world.scene, obj, out)]
     return out if len(out) else None
 
 
@@ -138,14 +149,11 @@ def sample_episode(world, scene_spec: str, split: str, sounds: str, rng: np.rand
     for o in objs:
         by_cat.setdefault(o.category, []).append(o)
     names = sorted(by_cat)
-    from sonicverse_core.geometry.raycast import RayCaster
-
-    caster = RayCaster(world.scene.static_mesh())  # the walls that hide an object from a terminal position
     while names:
         cat = names[int(rng.integers(len(names)))]
         cands = by_cat[cat]
         obj = cands[int(rng.integers(len(cands)))]
-        goals = goal_positions(world, obj, rng, caster=caster)
+        goals = goal_positions(world, obj, rng)
         ok = np.zeros(0, int)
         if goals is not None:
             field_ = world.grid.distance_field(goals)
