@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.scripted import ego_offsets, map_depth
+from agents.scripted import ego_offsets, grid_cells, map_depth, project_depth
 
 
 class NavEgoMap:
@@ -184,7 +184,7 @@ class SemNavMap(NavEgoMap):
         x, y, s, c = (float(v) for v in obs["pose"])
         if "depth" in obs:
             map_semantic(self.seen, np.asarray(obs["depth"])[..., 0], np.asarray(obs["semantic"])[..., 0], self.lut,
-                         (x, y), math.degrees(math.atan2(s, c)), self.fx, self.camera_height, self.RES)
+                         (x, y), math.degrees(math.atan2(s, c)), self.fx, self.RES)
         k = self.category()
         r, q, ok = self._window
         if k < 0:
@@ -196,23 +196,13 @@ class SemNavMap(NavEgoMap):
 
 
 def map_semantic(seen: np.ndarray, depth: np.ndarray, sem: np.ndarray, lut: np.ndarray, p, yaw: float, fx: float,
-                 camera_height: float, cell: float, stride: int = 2) -> None:
+                 cell: float, stride: int = 2) -> None:
     """OR each category's bit (``lut[class id]``) into the cells of ``seen`` (cells of ``cell`` m centred on the
     odometry origin) where every ``stride``-th pixel of the semantic image ``sem`` lands, by its ``depth``, seen from
     pose ``p`` (x, y), ``yaw`` degrees (as :func:`agents.scripted.map_depth`)."""
-    H, W = depth.shape
-    rows, cols = np.arange(0, H, stride), np.arange(0, W, stride)
-    z = depth[np.ix_(rows, cols)]
+    rows, cols, z, _, wx, wy = project_depth(depth, p, yaw, fx, stride)
     bits = lut[np.clip(sem[np.ix_(rows, cols)], 0, len(lut) - 1)]
     ok = (z > 0.1) & (bits != 0)
-    if not np.any(ok):
-        return
-    u = (cols[None, :] - W / 2 + 0.5) / fx
-    fwd, left = z, -u * z
-    a = math.radians(yaw)
-    wx = p[0] + math.cos(a) * fwd - math.sin(a) * left
-    wy = p[1] + math.sin(a) * fwd + math.cos(a) * left
-    size = seen.shape[0]
-    idx = np.floor(np.stack([wx[ok], wy[ok]], 1) / cell).astype(int) + size // 2
-    good = (idx >= 0).all(1) & (idx < size).all(1)
-    np.bitwise_or.at(seen, (idx[good, 0], idx[good, 1]), bits[ok][good])
+    if np.any(ok):
+        r, c, good = grid_cells(wx[ok], wy[ok], cell, seen.shape[0])
+        np.bitwise_or.at(seen, (r, c), bits[ok][good])

@@ -194,7 +194,8 @@ class _Maps:
 
 def train(cfg: PPOConfig, out, progress=None) -> dict:
     """Run PPO for ``cfg.frames`` frames (all processes together); rank 0 writes ``out/model.pt`` (every
-    ``val_every`` updates, validated or not: an interrupted run keeps it), ``out/best.pt`` (the best validation SR + SPL) and ``out/log.csv``."""
+    ``val_every`` updates, validated or not: an interrupted run keeps it), ``out/best.pt`` (the best validation
+    SR + SPL) and ``out/log.csv``."""
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks import make_env
 

@@ -489,36 +489,47 @@ def window_cells(grid, x: float, y: float, yaw: float, fwd: np.ndarray, left: np
     return wx, wy, np.clip(rc[:, 0], 0, grid.shape[0] - 1), np.clip(rc[:, 1], 0, grid.shape[1] - 1), inside
 
 
+def project_depth(depth: np.ndarray, p, yaw: float, fx: float, stride: int = 4):
+    """Every ``stride``-th pixel of a depth image seen from pose ``p`` (x, y), ``yaw`` degrees: (rows, cols, z the
+    depth (H', W'), up the height above the camera, wx, wy the world point); a pinhole of focal length ``fx``
+    pixels."""
+    H, W = depth.shape
+    rows = np.arange(0, H, stride)
+    cols = np.arange(0, W, stride)
+    z = depth[np.ix_(rows, cols)]
+    u = (cols[None, :] - W / 2 + 0.5) / fx
+    v = (rows[:, None] - H / 2 + 0.5) / fx
+    fwd, left, up = z, -u * z, -v * z
+    a = math.radians(yaw)
+    wx = p[0] + math.cos(a) * fwd - math.sin(a) * left
+    wy = p[1] + math.sin(a) * fwd + math.cos(a) * left
+    return rows, cols, z, up, wx, wy
+
+
+def grid_cells(wx: np.ndarray, wy: np.ndarray, cell: float, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, cols, kept) of the world points (wx, wy) in a ``size`` x ``size`` grid of ``cell`` m centred on the
+    odometry origin; ``kept`` marks the points inside it."""
+    idx = np.floor(np.stack([wx, wy], 1) / cell).astype(int) + size // 2
+    good = (idx >= 0).all(1) & (idx < size).all(1)
+    return idx[good, 0], idx[good, 1], good
+
+
 def map_depth(occ: np.ndarray, depth: np.ndarray, p, yaw: float, fx: float, camera_height: float, cell: float,
               stride: int = 4, floor: np.ndarray | None = None) -> None:
     """Count obstacle hits (points 0.08-0.6 m above the floor) of a depth image into an occupancy grid ``occ``
     (cells of ``cell`` m, centred on the odometry origin) seen from pose ``p`` (x, y), ``yaw`` degrees; with
     ``floor`` (a boolean grid of the same shape) mark the cells where it sees the floor (points below 0.08 m)."""
-    H, W = depth.shape
-    rows = np.arange(0, H, stride)
-    cols = np.arange(0, W, stride)
-    z = depth[np.ix_(rows, cols)]
+    _, _, z, up, wx, wy = project_depth(depth, p, yaw, fx, stride)
     ok = z > 0.1
     if not np.any(ok):
         return
-    u = (cols[None, :] - W / 2 + 0.5) / fx
-    v = (rows[:, None] - H / 2 + 0.5) / fx
-    fwd, left, up = z, -u * z, -v * z
     height = camera_height + up
     obst = ok & (height > 0.08) & (height < 0.6)
-    a = math.radians(yaw)
-    wx = p[0] + math.cos(a) * fwd - math.sin(a) * left
-    wy = p[1] + math.sin(a) * fwd + math.cos(a) * left
     size = occ.shape[0]
-
-    def cells(sel):
-        idx = np.floor(np.stack([wx[sel], wy[sel]], 1) / cell).astype(int) + size // 2
-        good = (idx >= 0).all(1) & (idx < size).all(1)
-        return idx[good, 0], idx[good, 1]
-
-    np.add.at(occ, cells(obst), 1)
+    np.add.at(occ, grid_cells(wx[obst], wy[obst], cell, size)[:2], 1)
     if floor is not None:
-        floor[cells(ok & (height <= 0.08))] = True
+        sel = ok & (height <= 0.08)
+        floor[grid_cells(wx[sel], wy[sel], cell, size)[:2]] = True
 
 
 def _grid_path(blocked: np.ndarray, start, goal):

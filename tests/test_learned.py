@@ -517,7 +517,7 @@ def test_map_semantic_puts_each_category_where_depth_says_it_is():
     lut = np.zeros(len(CLASSES), np.int64)
     lut[CLASSES.index("sofa")] = 1 << CLASSES.index("sofa")
     seen = np.zeros((40, 40), np.int64)
-    map_semantic(seen, depth, sem, lut, (1.0, 0.0), 90.0, fx=4.0, camera_height=0.5, cell=0.25, stride=1)
+    map_semantic(seen, depth, sem, lut, (1.0, 0.0), 90.0, fx=4.0, cell=0.25, stride=1)
     cells = np.argwhere(seen)
     assert len(cells) and np.all(seen[seen != 0] == lut[CLASSES.index("sofa")])
     xy = (cells - 20 + 0.5) * 0.25
