@@ -180,28 +180,39 @@ def test_late_send():
     out = np.empty((2, B), np.float32)
     pd = p_delay.copy()
     rt = np.array([0.6, 1.4])  # each group's decay: the source's room's
-    rt_slow = np.array([2.0, 2.5])  # the slowest coupled mode's decay per group
-    p_slow = np.array([0.3, 0.0, 0.1])
-    out_slow = np.empty((2, B), np.float32)
+    # the coupled modes heard apart, per group: the slowest, a neighbour's (its own, faster decay), an idle one
+    rt_modes = np.array([[2.0, 2.5], [1.1, 1.6], [0.0, 0.0]])
+    p_modes = np.array([[0.3, 0.2, 0.4], [0.0, 0.1, 0.0], [0.1, 0.3, 0.2]])
+    out_modes = np.empty((3, 2, B), np.float32)
+    pm = p_modes.copy()
     LK.late_send(ring, 40, dist, occ, use_occ, group, rt, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012,
-                 rt_slow, p_slow.copy(), out_slow)
+                 rt_modes, pm, out_modes, np.empty((2, 3)), np.empty(B, np.float32))
     D0 = np.where(fresh, D, p_delay)
     r = (np.arange(B) + 1) / B
     rows = np.arange(n)[:, None]
     new_ = ring[rows, (40 + np.arange(B)[None] - D[:, None]) % H]  # delayed: wraps the ring
     old_ = ring[rows, (40 + np.arange(B)[None] - D0[:, None]) % H]
     src = np.where((D0 == D)[:, None], new_, old_ * (1 - r) + new_ * r)
-    for sends, T, prev in ((out, rt[group], p_send), (out_slow, rt_slow[group], p_slow)):
+    cases = [(out, rt[group], p_send)] + [(out_modes[k], rt_modes[k][group], p_modes[:, k]) for k in range(3)]
+    for k, (sends, T, prev) in enumerate(cases):
+        T = np.maximum(T, 0.05)
         s = 10 ** (-0.174 * dist / T / 20 - 3 * 0.012 / T) * np.where(use_occ, np.sqrt(occ[:, 4:7].mean(1)), 1.0)
+        if k == 3:  # the idle mode: its sends ramp to silence
+            s = np.zeros(n)
         s0 = np.where(fresh, s, prev)
         ramp = s0[:, None] + (s - s0)[:, None] * r
         for g in (0, 1):
             np.testing.assert_allclose(sends[g], (src * ramp)[group == g].sum(0), rtol=1e-5, atol=1e-6)
+        if k:
+            np.testing.assert_allclose(pm[:, k - 1], s)
     assert np.array_equal(pd, D)
-    # no slow sends: out_slow (0, B) is left alone, the sends are the same
+    # a mode's distance law is its own: 0.174 r (1 / T_k - 1 / T_slow) dB below the slowest mode's
+    assert not np.allclose(out_modes[0], out_modes[1])
+    # no mode sends: out_modes (0, G, B) is left alone, the sends are the same
     out2 = np.empty((2, B), np.float32)
     LK.late_send(ring, 40, dist, occ, use_occ, group, rt, p_send.copy(), p_delay.copy(), fresh, out2, FS, 343.0,
-                 0.012, rt_slow, p_slow.copy(), np.empty((0, B), np.float32))
+                 0.012, rt_modes[:0], p_modes[:, :0].copy(), np.empty((0, 2, B), np.float32), np.empty((2, 0)),
+                 np.empty(B, np.float32))
     np.testing.assert_array_equal(out2, out)
 
 

@@ -30,24 +30,28 @@ class NeighbourTail:
     """A coupled mode heard apart from the listener's room and the slowest mode (``RenderConfig.neighbour_tails``):
     its convolution (``conv``: the tails of the room it rings in, the own room's noise, which those tails never
     share with it), the per-ear gains of the direction it arrives from (``ears``, ``portal``, ``portal_idx``), its
-    tail weights (``w``) and per-group amplitudes (``shapes``), the room (``room``; -1 idle) and whether its
-    convolution still rings (``live``); ``key`` what its weights and amplitudes were made for, ``at`` where its
-    direction was found (found again 10 cm on)."""
+    tail weights (``w``) and per-group amplitudes (``shapes``), the room (``room``; -1 idle), the coupled mode
+    (``mode``) and whether its convolution still rings (``live``); ``key`` what its weights and amplitudes were made
+    for, ``at`` where its direction was found (found again 10 cm on); ``buildup`` its sends' build-up (None: off).
+    Its sends are its own (``LateState.sends_slow[1 + j]``): their distance law takes its mode's decay."""
 
-    __slots__ = ("conv", "ears", "portal", "portal_idx", "w", "shapes", "room", "live", "key", "at")
+    __slots__ = ("conv", "ears", "portal", "portal_idx", "w", "shapes", "room", "mode", "live", "key", "at",
+                 "buildup")
 
-    def __init__(self, conv, block: int):
-        self.conv, self.ears = conv, PortalEars(block)
+    def __init__(self, conv, block: int, buildup=None):
+        self.conv, self.ears, self.buildup = conv, PortalEars(block), buildup
         self.portal, self.portal_idx, self.w, self.shapes, self.room, self.live = None, -1, None, None, -1, False
-        self.key, self.at = None, None
+        self.mode, self.key, self.at = -1, None, None
 
 
 class LateState(PerSource):
     """A listener's late reverb: per source its send's gain and delay (``send``, ``send_delay``: ramped from) and,
-    with rooms of their own, its send's gain to the slowest coupled mode (``send_slow``), the send it joins
+    with rooms of their own, its sends' gains to the coupled modes heard apart (``send_slow``: the slowest, then
+    each :class:`NeighbourTail`'s), the send it joins
     (``group``: 0 the listener's room or rooms unknown, 1 + r room r) and whether its send falls with the direct
-    path's transmission (``use_occ``); per group the block's sends (``sends``; ``sends_slow`` to the slow mode),
-    the decays their distance laws take (``rt_send``, ``rt_slow``), which carry sound (``seen``) and their per-band
+    path's transmission (``use_occ``); per group the block's sends (``sends``; ``sends_slow`` (M, G, B) to the
+    modes), the decays their distance laws take (``rt_send``; ``rt_slow`` (M, G), 0: an idle mode), which carry
+    sound (``seen``) and their per-band
     amplitudes (``shapes``, made for ``shapes_key``); the reverberator (``conv`` and, with rooms of their own,
     ``conv_slow`` and its direction ``ears`` / ``portal``; or ``fdn``, and ``fdn_slow`` with rooms of their own);
     the probes' mix for where the listener stands (``params``, made at ``key``; its room ``lis_room``) and the level
@@ -57,12 +61,13 @@ class LateState(PerSource):
                  "ears", "portal", "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono",
                  "fdn_out", "key", "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes",
                  "fdn_rt", "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send", "rt_slow", "sends_slow",
-                 "buildup", "buildup_slow", "more")
+                 "buildup", "buildup_slow", "more", "qs", "vbuf")
     ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("send_slow", (), np.float64, 0),
             ("group", (), np.int64, 0), ("use_occ", (), bool, True), ("group_moved", (), bool, False))
 
-    def __init__(self, cap: int, groups: int, block: int):
-        super().__init__(cap)
+    def __init__(self, cap: int, groups: int, block: int, modes: int = 0):
+        super().__init__(cap, tuple((n, (modes,), d, f) if n == "send_slow" else (n, sh, d, f)
+                                    for n, sh, d, f in self.ROWS))
         self.fdn = self.conv = self.conv_slow = self.ears = self.portal = None
         self.mid = self.mono = self.fdn_out = self.fdn_rt = None
         self.fdn_slow = self.mid_own = self.mid_slow = self.fdn_key = None
@@ -72,8 +77,9 @@ class LateState(PerSource):
         self.more: list[NeighbourTail] = []  # coupled modes heard apart besides the slowest (convolution only)
         self.sends = np.zeros((groups, block), np.float32)
         self.rt_send = np.full(groups, 0.5)  # per group the decay its sends' distance law uses (late_send)
-        self.rt_slow = np.full(groups, 0.5)  # the same for the slowest coupled mode's sends
-        self.sends_slow = np.zeros((0, block), np.float32)  # the slow mode's sends (coupled rooms only)
+        self.rt_slow = np.full((modes, groups), 0.5)  # the same for the coupled modes' sends
+        self.sends_slow = np.zeros((modes, groups, block), np.float32)  # the modes' sends (coupled rooms only)
+        self.qs, self.vbuf = np.zeros((2, modes)), np.zeros(block, np.float32)  # late_send's scratch
         self.seen = np.zeros(groups, bool)
         self.shapes = np.ones((groups, len(BANDS)))
         self.shapes_key = self.key = self.params = self.modal_key = self.modal_w = self.modal_shapes = None
@@ -167,13 +173,19 @@ class LateReverb:
     # --- the subsystem protocol ----------------------------------------------------------------------------------
     def state(self, cap: int) -> LateState:
         cfg = self.r.cfg
-        st = LateState(cap, self.groups, cfg.block)
-        if cfg.tail_buildup > 0 and self.groups > 1:  # other rooms' sends build up (rooms known)
-            st.buildup = TailBuildUp(cfg.tail_buildup, float(cfg.sample_rate), self.groups, cfg.block)
-            if self.modal:
-                st.buildup_slow = TailBuildUp(cfg.tail_buildup, float(cfg.sample_rate), self.groups, cfg.block)
-        if self.modal:  # the slowest coupled mode's sends: their distance law takes its own decay
-            st.sends_slow = np.zeros((self.groups, cfg.block), np.float32)
+        # rooms beyond two: the modes that ring in yet other rooms, each heard apart (convolution only)
+        extra = max(min(cfg.neighbour_tails, len(self.r.coupling.rooms) - 2), 0) \
+            if self.modal and cfg.reverb != "fdn" else 0
+        # the coupled modes' sends (the slowest, then each neighbour tail's): their distance law takes their decay
+        st = LateState(cap, self.groups, cfg.block, modes=1 + extra if self.modal else 0)
+        buildup = cfg.tail_buildup > 0 and self.groups > 1  # other rooms' sends build up (rooms known)
+
+        def grown_up():
+            return TailBuildUp(cfg.tail_buildup, float(cfg.sample_rate), self.groups, cfg.block) if buildup else None
+
+        st.buildup = grown_up()
+        if self.modal:
+            st.buildup_slow = grown_up()
         if cfg.reverb == "fdn":
             from sonicverse_core.acoustics.reverb import FDNReverb
 
@@ -202,13 +214,12 @@ class LateReverb:
                 # rooms beyond two: the modes that ring in yet other rooms, each heard from its doorway. Their
                 # tails are those rooms' own, so the own-room noise serves (the same partitions, cached). The
                 # directional channels are shared with the slow tail's: each plays another room's tail
-                extra = min(cfg.neighbour_tails, len(self.r.coupling.rooms) - 2)
                 st.more = [NeighbourTail(ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed,
                                                            probe_edts=self.tail_edt, groups=self.groups,
                                                            direct=cfg.output != "mono", direct_seed=seed,
                                                            **self.tail_colour()),
-                                         cfg.block)
-                           for _ in range(max(extra, 0))]
+                                         cfg.block, grown_up())
+                           for _ in range(extra)]
         return st
 
     def grow(self, st: LateState | None, cap: int) -> None:
@@ -223,7 +234,7 @@ class LateReverb:
 
     def reset(self, st: LateState) -> None:
         for rev in (st.fdn, st.fdn_slow, st.conv, st.conv_slow, st.buildup, st.buildup_slow,
-                    *(t.conv for t in st.more)):
+                    *(t.conv for t in st.more), *(t.buildup for t in st.more)):
             if rev is not None:
                 rev.reset()
         st.level, st.key, st.fdn_key = None, None, None
@@ -286,7 +297,7 @@ class LateReverb:
         st.rt_send.fill(lo)  # one decay for the whole space
         late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, st.rt_send, st.send[:n],
                   st.send_delay[:n], fresh, sends, float(cfg.sample_rate), SPEED_OF_SOUND, t_mix, st.rt_slow,
-                  st.send_slow[:n], st.sends_slow[:0])
+                  st.send_slow[:n], st.sends_slow[:0], st.qs, st.vbuf)
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
         if st.buildup is not None:
             st.buildup.process(sends, st.lis_room, lo)
@@ -327,28 +338,35 @@ class LateReverb:
             st.rt_send[0] = lo
             # the slowest mode's share dies out as slowly as that mode before it reaches the listener: a source in
             # a dead room beside a live one rings on in the live one, not at the dead room's decay
-            np.maximum(st.rt_send, float(np.mean(split["slow_rt"][3:6])), out=st.rt_slow)
+            np.maximum(st.rt_send, float(np.mean(split["slow_rt"][3:6])), out=st.rt_slow[0])
+            for j, t in enumerate(st.more, 1):  # a neighbour's mode: its own decay (0: idle, no sends)
+                if t.room >= 0:
+                    np.maximum(st.rt_send, float(np.mean(split["modes_rt"][t.mode, 3:6])), out=st.rt_slow[j])
+                else:
+                    st.rt_slow[j] = 0.0
             st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) + np.count_nonzero(st.modal_w[1] > 1e-4)
                                   + sum(np.count_nonzero(t.w > 1e-4) for t in st.more if t.room >= 0))
         self.r.stats["room_reverbs"] = st.room_reverbs
         sends = st.sends
         late_send(self.r._ring, (self.r.write - B) % self.r.hist, dist, occ, use_occ, group, st.rt_send,
                   st.send[:n], st.send_delay[:n], fresh, sends, float(self.r.cfg.sample_rate), SPEED_OF_SOUND, t_mix,
-                  st.rt_slow, st.send_slow[:n], st.sends_slow)
+                  st.rt_slow, st.send_slow[:n], st.sends_slow, st.qs, st.vbuf)
         self.r.stats["rooms_sending"] = groups_sending(group, st.send[:n], st.seen)
         if st.buildup is not None:  # the slow mode's share rings on in the source's room: it builds up as well
             st.buildup.process(sends, lr, lo)
-            st.buildup_slow.process(st.sends_slow, lr, st.rt_slow[0])  # the slowest mode's decay, at least lo
+            st.buildup_slow.process(st.sends_slow[0], lr, st.rt_slow[0, 0])  # the slowest mode's decay, >= lo
         if st.fdn is not None:
             self._fdn_modal(st, split, lr, sends, out)
             return
         (w_own, w_slow), (sh_own, sh_slow) = st.modal_w, st.modal_shapes
         st.conv.process(sends, w_own, sh_own, out=out, shapes_key=key)
-        st.conv_slow.process(st.sends_slow, w_slow, sh_slow, out=out, shapes_key=key,
+        st.conv_slow.process(st.sends_slow[0], w_slow, sh_slow, out=out, shapes_key=key,
                              ears=self._portal_ears(st, lis))
-        for t in st.more:  # the other rooms' modes heard apart: the slow mode's sends (its distance law), own shapes
+        for j, t in enumerate(st.more, 1):  # the other rooms' modes heard apart: their own sends and shapes
             if t.live:
-                t.conv.process(st.sends_slow, t.w, t.shapes, out=out, shapes_key=t.key,
+                if t.buildup is not None:
+                    t.buildup.process(st.sends_slow[j], lr, max(st.rt_slow[j, 0], lo))
+                t.conv.process(st.sends_slow[j], t.w, t.shapes, out=out, shapes_key=t.key,
                                ears=self._portal_ears(t, lis))
                 t.live = t.room >= 0  # an idle tail ramps to silence in one block, then stops
 
@@ -365,7 +383,7 @@ class LateReverb:
             st.mid_own[:] = sh_own[:, MID].mean(1)
             st.mid_slow[:] = sh_slow[:, MID].mean(1)
             st.fdn_key = st.modal_key
-        for fdn, mid, x in ((st.fdn, st.mid_own, sends), (st.fdn_slow, st.mid_slow, st.sends_slow)):
+        for fdn, mid, x in ((st.fdn, st.mid_own, sends), (st.fdn_slow, st.mid_slow, st.sends_slow[0])):
             np.matmul(mid, x, out=st.mono)
             np.add(out, fdn.process(st.mono, out=st.fdn_out), out=out)
 
@@ -505,7 +523,9 @@ class LateReverb:
                 t.shapes[0], t.shapes[1:] = amp[lr], amp
                 if t.room < 0 and not t.live:  # woken: no history from an earlier room
                     t.conv.reset()
-                t.room, t.live, t.key, t.at = room, True, key, None
+                    if t.buildup is not None:
+                        t.buildup.reset()
+                t.room, t.mode, t.live, t.key, t.at = room, k, True, key, None
             if t.at is None or farther(t.at, lis.position, 0.1):  # its doorway, found again every 10 cm
                 t.portal, t.portal_idx, t.at = self._portal(lis, room, lr), -1, lis.position.copy()
         if any(t.room >= 0 for t in st.more):

@@ -64,7 +64,7 @@ def buildup_filter(sends, hist, delay, gain, skip):
 
 @njit(**_opts)
 def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fresh, out, fs, c_sound, t_mix,
-              rt_slow, p_slow, out_slow):
+              rt_modes, p_modes, out_modes, qs, v):
     """Sends to the late reverb, one per group of sources (out (G, B): the groups are the rooms the sources are in,
     which the renderer filters by their coupling to the listener's room): per source, its dry samples delayed by
     its travel time plus the mixing time (ring[i, w0 + t - D], D = round((dist / c + t_mix) fs): the tail starts
@@ -76,58 +76,62 @@ def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fr
     rooms are unknown (use_occ), by the square root of the mid-band transmission of the direct path; ramped from
     p_send. p_send and p_delay (int64) are updated.
 
-    With coupled rooms, out_slow (G, B) gets the same sends for the slowest coupled mode, whose energy dies out at
-    its own decay T = rt_slow[group] over the same time (ramped from p_slow, updated); an empty out_slow (0, B):
-    none."""
+    With coupled rooms, out_modes (K, G, B) gets the same sends once per coupled mode heard apart (k = 0 the
+    slowest, then the neighbouring rooms' modes), each mode's energy dying out at its own decay T = rt_modes[k,
+    group] over the same time (ramped from p_modes[i, k], updated; rt_modes[k, 0] <= 0: mode k idle, its sends
+    ramp to silence); an empty out_modes (0, G, B): none. qs (2, K) float64 and v (B,) float32: scratch."""
     B = out.shape[1]
     H = ring.shape[1]
-    slow = out_slow.shape[0] > 0
+    K = out_modes.shape[0]
     out[:] = 0.0
-    if slow:
-        out_slow[:] = 0.0
+    for k in range(K):
+        out_modes[k, :, :] = 0.0
+    q, q0 = qs[0], qs[1]
     for i in range(len(dist)):
         T = max(rt_group[group[i]], 0.05)
         s = 10.0 ** (-0.174 * dist[i] / T / 20.0 - 3.0 * t_mix / T)
-        q = 0.0
-        if slow:
-            Ts = max(rt_slow[group[i]], 0.05)
-            q = 10.0 ** (-0.174 * dist[i] / Ts / 20.0 - 3.0 * t_mix / Ts)
+        a = 1.0
         if use_occ[i]:
             o = 0.0
             for b in range(4, 7):
                 o += occ[i, b]
-            s *= np.sqrt(max(o / 3.0, 0.0))
-            q *= np.sqrt(max(o / 3.0, 0.0))
+            a = np.sqrt(max(o / 3.0, 0.0))
         elif occ[i, 4] == 0.0 and occ[i, 5] == 0.0 and occ[i, 6] == 0.0:
-            s = 0.0  # a source this listener does not hear
-            q = 0.0
+            a = 0.0  # a source this listener does not hear
+        s *= a
+        any_q = False
+        for k in range(K):
+            if rt_modes[k, 0] <= 0.0:
+                q[k] = 0.0
+            else:
+                Ts = max(rt_modes[k, group[i]], 0.05)
+                q[k] = a * 10.0 ** (-0.174 * dist[i] / Ts / 20.0 - 3.0 * t_mix / Ts)
+            q0[k] = q[k] if fresh[i] else p_modes[i, k]
+            p_modes[i, k] = q[k]
+            any_q = any_q or q[k] != 0.0 or q0[k] != 0.0
         D = np.int64((dist[i] / c_sound + t_mix) * fs + 0.5)
         s0 = s if fresh[i] else p_send[i]
         D0 = D if fresh[i] else p_delay[i]
         p_send[i] = s
         p_delay[i] = D
-        q0 = 0.0
-        if slow:
-            q0 = q if fresh[i] else p_slow[i]
-            p_slow[i] = q
-        if s == 0.0 and s0 == 0.0 and q == 0.0 and q0 == 0.0:
+        if s == 0.0 and s0 == 0.0 and not any_q:
             continue
         g = group[i]
-        ds = (s - s0) / B
-        dq = (q - q0) / B
         if D0 == D:
             for t in range(B):
-                v = ring[i, (w0 + t - D) % H]
-                out[g, t] += v * np.float32(s0 + ds * (t + 1))
-                if slow:
-                    out_slow[g, t] += v * np.float32(q0 + dq * (t + 1))
+                v[t] = ring[i, (w0 + t - D) % H]
         else:
             for t in range(B):
                 r = (t + 1) / B
-                v = ring[i, (w0 + t - D0) % H] * (1.0 - r) + ring[i, (w0 + t - D) % H] * r
-                out[g, t] += v * np.float32(s0 + ds * (t + 1))
-                if slow:
-                    out_slow[g, t] += v * np.float32(q0 + dq * (t + 1))
+                v[t] = ring[i, (w0 + t - D0) % H] * (1.0 - r) + ring[i, (w0 + t - D) % H] * r
+        ds = (s - s0) / B
+        for t in range(B):
+            out[g, t] += v[t] * np.float32(s0 + ds * (t + 1))
+        for k in range(K):
+            if q[k] != 0.0 or q0[k] != 0.0:
+                dq = (q[k] - q0[k]) / B
+                for t in range(B):
+                    out_modes[k, g, t] += v[t] * np.float32(q0[k] + dq * (t + 1))
 
 
 @njit(**_fast)

@@ -46,7 +46,8 @@ listeners are added):
   ``RenderConfig.neighbour_tails`` (default 1) further modes ringing in yet other rooms, each decaying at least
   1.25 times slower than the listener's room alone, are heard apart as well: one tail each (the nearest probe of
   that room), from that room's doorway, chosen by the energy they bring into the listener's room
-  (``late.LateReverb._apart``); a hall between two live rooms hears each of them decay as itself.
+  (``late.LateReverb._apart``); a hall between two live rooms hears each of them decay as itself. Each mode heard
+  apart has sends of its own, whose distance law takes that mode's decay.
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
