@@ -1,4 +1,5 @@
-"""Agents: scripted baselines (random, oracle, gan and gan-itd, the speaker followers) and learned policies (torch).
+"""Agents: scripted baselines (random, oracle, gan and gan-itd, the semantic navigator sem-nav, the speaker followers)
+and learned policies (torch).
 
 The registry (:mod:`sonicverse_core.tasks.registry`) says which agent names a task takes; this table says which
 class plays each (name, task).
@@ -8,7 +9,8 @@ from __future__ import annotations
 _LEARNED = {"av-nav": "agents.learned:AVNavAgent", "av-nav-greedy": "agents.learned:AVNavGreedy",
             "savi": "agents.learned:SAViAgent", "multitask": "agents.learned:MultitaskAgent"}
 _NAV = {"random": "agents.scripted:RandomAgent", "oracle": "agents.scripted:OracleAgent",
-        "gan": "agents.scripted:GanAgent", "gan-itd": "agents.scripted:GanItdAgent", **_LEARNED}
+        "gan": "agents.scripted:GanAgent", "gan-itd": "agents.scripted:GanItdAgent",
+        "sem-nav": "agents.semnav:SemNavAgent", **_LEARNED}
 # agents that load a checkpoint (``checkpoint=``; default agents/checkpoints/ARCH_TASK.pt)
 LEARNED = {"av-nav", "av-nav-greedy", "savi", "multitask"}
 IMPLEMENTATIONS = {

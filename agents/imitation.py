@@ -38,8 +38,8 @@ MAP_SENSORS = SENSORS + ("audio",)  # a policy with a map input: EgoMap listens 
 
 MAP_TASKS = {"SpeakerFollowing": "follow", "AudioGoal": "nav", "SemanticAudioNav": "sem"}  # train --map: which map
 #: the env sensors a policy with each kind of map acts on (EgoMap listens to the raw block; SemNavMap reads the
-#: semantic camera)
-MAP_KIND_SENSORS = {"follow": MAP_SENSORS, "nav": SENSORS, "sem": SENSORS + ("semantic",)}
+#: semantic camera, and its teacher, sem-nav, the raw block)
+MAP_KIND_SENSORS = {"follow": MAP_SENSORS, "nav": SENSORS, "sem": SENSORS + ("semantic", "audio")}
 
 
 def _map_kind(model) -> str | None:
@@ -112,8 +112,9 @@ class ImitationConfig:
     # default, DEFAULT_HOMES["train"] = 16)
     egomap: bool = False  # av-nav: an egocentric map input (MAP_TASKS: EgoMap when following, else NavEgoMap)
     teacher: str = "oracle"  # whose actions are the labels: the privileged "oracle", or (speaker following with
-    # the map) the "scripted" follower, which acts on what the map shows, so its labels do not ask for what the
-    # policy cannot know (the imitation gap); the goal heads still learn where the person is from the oracle
+    # the map) the "scripted" follower, or (SemanticAudioNav with the map) sem-nav, which act on what the map
+    # shows, so their labels do not ask for what the policy cannot know (the imitation gap); the goal heads still
+    # learn where the person or the goal is from the oracle
     learner: str = "greedy"  # how the learner acts when DAgger lets it: its most likely action ("greedy"), or
     # "drawn" as it plays (drawn from its distribution, through the floor shield where it reads the floor plan)
     rollout_steps: int = 0  # a collection episode ends here (a stuck learner's 500 steps teach little); 0: the
@@ -469,8 +470,9 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
         raise ConfigError(f"learner must be greedy or drawn, got {cfg.learner!r}")
     if cfg.teacher not in ("oracle", "scripted"):
         raise ConfigError(f"teacher must be oracle or scripted, got {cfg.teacher!r}")
-    if cfg.teacher == "scripted" and not (cfg.egomap and MAP_TASKS.get(cfg.task) == "follow"):
-        raise ConfigError("--teacher scripted is for --map on SpeakerFollowing (the scripted follower draws the map)")
+    if cfg.teacher == "scripted" and not (cfg.egomap and MAP_TASKS.get(cfg.task) in ("follow", "sem")):
+        raise ConfigError("--teacher scripted is for --map on SpeakerFollowing (the scripted follower draws the map) "
+                          "or SemanticAudioNav (sem-nav acts on what the semantic map shows)")
     resolve_device(cfg.device)  # an unknown or absent device fails before anything is written
     out = Path(out)
     ck_path = out / "model.pt"
@@ -517,6 +519,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
     data = Dataset(cfg.dataset_frames)
     expert = expert_for(cfg.task)
     ego = ego_for(model)
+    if ego is not None and cfg.teacher == "scripted":
+        ego.teach = True  # the map's own scripted agent acts (its action, ego.action, is the label)
     cap = cfg.rollout_steps or ROLLOUT_STEPS.get(cfg.task, 200)
     labels_c = getattr(model, "category", None) is not None  # SAVi's category targets
     occ_v = getattr(model.cfg, "occupancy", 0)  # the multi-task model's occupancy targets

@@ -148,9 +148,13 @@ class SemNavMap(NavEgoMap):
     Sightings: every second pixel of the semantic image whose category is one of the 15, projected with its depth
     (any height) into the world grid, a bit per category per cell. The camera's category ids are ground truth (the
     scene's labels, as Habitat's semantic sensor), a stand-in for an object detector on RGB: what the paper's agents
-    learn from RGB, this map is told."""
+    learn from RGB, this map is told.
+
+    With ``teach`` set (``train --teacher scripted``) a :class:`agents.semnav.SemNavAgent` acts on the same
+    observations each step; its action (``action``) is the imitation label."""
 
     CHANNELS = 5
+    teach = False
 
     def reset(self, env, obs, info) -> None:
         super().reset(env, obs, info)
@@ -164,6 +168,15 @@ class SemNavMap(NavEgoMap):
         self.score = np.zeros(len(CATEGORIES))
         self.heard = 0
         self.classify = sound_classifier()
+        self.action = None
+        if self.teach:  # train --teacher scripted: sem-nav acts on the same observations (seeded by the episode)
+            import zlib
+
+            from agents.semnav import SemNavAgent
+
+            seed = zlib.crc32(str(env.unwrapped.episode.episode_id).encode())
+            self.teacher = SemNavAgent(np.random.default_rng(seed))
+            self.teacher.reset(env, obs, info)
 
     def category(self) -> int:
         """The index (into CATEGORIES) of the category the ears name so far, -1 before anything was heard."""
@@ -177,6 +190,8 @@ class SemNavMap(NavEgoMap):
 
             raise ConfigError("the semantic map needs the env's 'semantic' sensor")
         img = super().observe(obs, info)
+        if self.teach:
+            self.action = self.teacher.act(obs, info)  # the label (``ego.action``), not taken here
         spec = np.asarray(obs["spectrogram"])
         if float(spec.mean()) > AUDIBLE:
             self.score += self.classify(spec)

@@ -532,8 +532,10 @@ def map_depth(occ: np.ndarray, depth: np.ndarray, p, yaw: float, fx: float, came
         floor[grid_cells(wx[sel], wy[sel], cell, size)[:2]] = True
 
 
-def _grid_path(blocked: np.ndarray, start, goal):
-    """8-connected shortest path on a boolean grid (Dijkstra via scipy); list of (row, col) or None."""
+def grid_field(blocked: np.ndarray, start) -> tuple[np.ndarray, np.ndarray]:
+    """8-connected path lengths (in cells) from ``start`` (row, col) over the free cells of a boolean grid, and each
+    cell's predecessor on its shortest path (Dijkstra via scipy): (dist, pred), both flat (row * ncols + col);
+    unreachable cells have dist inf."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
@@ -551,11 +553,22 @@ def _grid_path(blocked: np.ndarray, start, goal):
     src, dst, w = np.concatenate(src), np.concatenate(dst), np.concatenate(w)
     g = coo_matrix((np.concatenate([w, w]), (np.concatenate([src, dst]), np.concatenate([dst, src]))),
                    shape=(ny * nx, ny * nx)).tocsr()
+    return dijkstra(g, indices=int(start[0]) * nx + int(start[1]), return_predecessors=True)
+
+
+def grid_trace(pred: np.ndarray, nx: int, start, goal):
+    """The cells (row, col) from ``start`` to ``goal`` along :func:`grid_field`'s predecessors; None if the goal was
+    not reached."""
     s, t = int(start[0]) * nx + int(start[1]), int(goal[0]) * nx + int(goal[1])
-    dist, pred = dijkstra(g, indices=s, return_predecessors=True)
-    if not np.isfinite(dist[t]):
+    if t != s and pred[t] < 0:
         return None
     out = [t]
     while out[-1] != s:
         out.append(int(pred[out[-1]]))
     return [(i // nx, i % nx) for i in reversed(out)]
+
+
+def _grid_path(blocked: np.ndarray, start, goal):
+    """8-connected shortest path on a boolean grid (Dijkstra via scipy); list of (row, col) or None."""
+    _, pred = grid_field(blocked, start)
+    return grid_trace(pred, blocked.shape[1], start, goal)

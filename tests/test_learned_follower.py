@@ -144,8 +144,8 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     trains (here on the scripted follower's actions, `--teacher scripted`), its checkpoint records the map's shape
     and kind, and the harness plays it with the sensors it needs (the raw audio block for the belief). On AudioGoal
     it reads the map the robot draws (NavEgoMap), on SemanticAudioNav that and the semantic camera's sightings of
-    the category its ears name (SemNavMap, with the semantic sensor). Elsewhere `--map`, and `--teacher scripted` without the
-    follower's map, are one line and exit 2. PPO fine-tunes such a policy with its map and floor shield."""
+    the category its ears name (SemNavMap, with the semantic sensor; there `--teacher scripted` is sem-nav).
+    Elsewhere `--map`, and `--teacher scripted` without those maps, are one line and exit 2. PPO fine-tunes such a policy with its map and floor shield."""
     from agents.following import EgoMap
     from agents.imitation import SENSORS, ego_for, floor_shield, sensors_for
     from agents.navmap import NavEgoMap, SemNavMap
@@ -169,12 +169,14 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     res = run_task("audio-goal", "av-nav", 1, seed=0, checkpoint=str(tmp_path / "n" / "model.pt"),
                    env_kwargs={"max_steps": 20})  # the av-nav agent plays a navigator with a map, unshielded
     assert res["episodes"] == 1
-    # SemanticAudioNav: that map and where the semantic camera saw the category the ears name (SemNavMap)
+    # SemanticAudioNav: that map and where the semantic camera saw the category the ears name (SemNavMap), on
+    # sem-nav's actions (`--teacher scripted`: the map's sem-nav acts, its action the label)
     train(ImitationConfig(task="SemanticAudioNav", frames=30, iterations=1, val_episodes=0, epochs=1, seed=3,
-                          rollout_steps=30, egomap=True), tmp_path / "s")
-    sem, _ = load(tmp_path / "s" / "model.pt")
+                          rollout_steps=30, egomap=True, teacher="scripted"), tmp_path / "s")
+    sem, smeta = load(tmp_path / "s" / "model.pt")
     assert sem.cfg.map_kind == "sem" and sem.cfg.map_shape == (SemNavMap.CHANNELS, SemNavMap.SIZE, SemNavMap.SIZE)
-    assert type(ego_for(sem)) is SemNavMap and sensors_for(sem) == SENSORS + ("semantic",)
+    assert type(ego_for(sem)) is SemNavMap and sensors_for(sem) == SENSORS + ("semantic", "audio")
+    assert smeta["config"]["teacher"] == "scripted" and not ego_for(sem).teach  # it plays without a teacher
     res = run_task("semantic-audio-nav", "av-nav", 1, seed=0, checkpoint=str(tmp_path / "s" / "model.pt"),
                    env_kwargs={"max_steps": 20})
     assert res["episodes"] == 1

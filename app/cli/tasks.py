@@ -50,8 +50,9 @@ def cmd_train(a) -> int:
         from sonicverse_core.errors import ConfigError
 
         raise ConfigError("--temperature is an ensemble's acting setting: give it with --ensemble")
-    if a.teacher != "oracle" and not (a.map and a.recipe == "dagger" and a.task == "SpeakerFollowing"):
-        raise ConfigError("--teacher scripted is for --recipe dagger --map --task SpeakerFollowing")
+    if a.teacher != "oracle" and not (a.map and a.recipe == "dagger"
+                                      and a.task in ("SpeakerFollowing", "SemanticAudioNav")):
+        raise ConfigError("--teacher scripted is for --recipe dagger --map --task SpeakerFollowing|SemanticAudioNav")
     if a.learner != "greedy" and a.recipe != "dagger":
         raise ConfigError("--learner is for --recipe dagger (PPO's learner always draws its actions)")
     if a.map and (a.recipe != "dagger" or a.agent != "av-nav"
@@ -434,7 +435,8 @@ def add_task_commands(sub, bench_sub) -> None:
                    "semantic camera saw the category its ears name; trained on --teacher's actions")
     t.add_argument("--teacher", choices=("oracle", "scripted"), default="oracle",
                    help="imitation: whose actions the policy learns, the privileged oracle's or (--map on "
-                   "SpeakerFollowing) the scripted follower's, which sees what the map shows (default: %(default)s)")
+                   "SpeakerFollowing) the scripted follower's or (--map on SemanticAudioNav) sem-nav's, which see "
+                   "what the map shows (default: %(default)s)")
     t.add_argument("--learner", choices=("greedy", "drawn"), default="greedy",
                    help="imitation: how the learner acts when DAgger lets it, its most likely action or drawn as it "
                    "plays (through the floor shield where it reads the floor plan) (default: %(default)s)")

@@ -1,0 +1,356 @@
+"""``sem-nav``: a scripted semantic audio-visual navigator for SemanticAudioNav (and AudioGoal).
+
+It names the sounding object's category by ear, explores until its semantic camera sees an object of that category,
+drives beside the nearest one and stops there. It reads observations only: the spectrogram (named by the shipped
+SAVi's goal predictor, :func:`agents.navmap.sound_classifier`), depth (an occupancy and floor map, as the ``gan``
+baseline's), the semantic camera and odometry.
+
+The semantic camera's category ids are ground truth (the scene's labels, as Habitat's semantic sensor): a stand-in
+for an object detector on RGB. So this agent knows *what* it sees for free, and the ears only have to say which
+category to look for; it does not know which of the category's objects sounded (it takes the nearest it has seen).
+
+Per step:
+
+* it maps depth (obstacles 0.08-0.6 m above the floor; the floor it sees) and the semantic image (a bit per
+  category per 0.1 m cell, any height);
+* while the goal sounds (the spectrogram's mean above ``agents.savi.AUDIBLE``) it adds the goal predictor's
+  log-probabilities; the category is their argmax (after ``MIN_HEARD`` audible steps);
+* it first turns once on the spot, seeing and hearing all round. From the turn it takes the sound's bearing (the
+  level difference between the ears against the heading, :meth:`SemNavAgent._fit_bearing`; it points along the
+  first stretch of the path, through the doorway the sound comes by) and how far the sound is (the turn's level
+  and the named category, :data:`LEVEL_FIT`);
+* with a category and a sighting of it: it plans (Dijkstra on the map, obstacles dilated by the robot's radius) to
+  a reachable free cell beside the sighted cluster, drives there, turns to face it and stops (a stop action; on
+  AudioGoal the task ends on arrival, and where it does not, the next sighting). Among several clusters it takes
+  the one cheapest to reach, off the bearing least and nearest the distance the level said; one much nearer or
+  farther than that (``LEVEL_REJECT``) is passed over until ``LATE`` of the episode has gone;
+* otherwise it explores: the frontier (seen floor beside unmapped space) cheapest by path length plus its
+  angle off the bearing, re-chosen every ``REPLAN`` steps. A bump maps an obstacle where the robot touched
+  (a door leaf seen edge-on escapes the camera) and backs off;
+* at its last step it stops wherever it is (a stop that fails costs nothing more than none).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agents.scripted import MapAgent, _pursue, _wheels, grid_field, grid_trace, map_depth
+
+
+def ild(audio: np.ndarray, sr: int) -> float:
+    """The level difference left - right (dB) of a binaural block in 0.7-4 kHz."""
+    from scipy.signal import butter, sosfilt
+
+    key = sr
+    if key not in _BAND:
+        _BAND[key] = butter(4, [700, 4000], "band", fs=sr, output="sos")
+    e = (sosfilt(_BAND[key], np.asarray(audio, float), axis=1) ** 2).sum(1) + 1e-12
+    return float(10 * math.log10(e[0] / e[1]))
+
+
+_BAND: dict = {}
+
+# ln(path distance from the start to the goal, m) = slope x (the spin's level, dB) + the category's offset: least
+# squares over 500 training episodes, `fit_level(500, seed=1)` (residual 0.387 in ln units, a factor of 1.47, where
+# the distances alone spread 0.56). Made on session 41's sound; re-fit when the sound changes
+LEVEL_FIT = {"slope": -0.067, "offset": {
+    "straight_chair": -0.37, "breakfast_table": -1.27, "picture": -0.57, "bottom_cabinet": -1.63, "cushion": -1.0,
+    "sofa": -0.22, "bed": -0.42, "shelf": -0.69, "sink": -1.07, "toilet": -0.26,
+    "stool": -0.73, "standing_tv": -0.84, "shower": -0.42, "bathtub": -0.66, "countertop": -1.17}}
+
+
+def spin_level(env) -> float:
+    """Turn once on the spot in ``env`` (just reset; the task's stop action held off) as :class:`SemNavAgent`
+    does, and return the level (dB) it hears after the turn's steps 3 to 20 (the agent acts on step 21's
+    observation): what :data:`LEVEL_FIT` reads."""
+    robot, dt = env.unwrapped.robot, env.unwrapped.cfg.step_seconds
+    turn = _wheels(0.0, math.radians(robot.max_turn_deg), robot)
+    act = np.r_[turn, -1.0][:env.action_space.shape[0]].astype(np.float32)
+    e = []
+    n = int(math.ceil(360.0 / (robot.max_turn_deg * dt))) + 1
+    for t in range(n - 1):
+        obs, *_ = env.step(act)
+        if t >= 2:
+            e.append(float(np.mean(np.square(np.asarray(obs["audio"], float)))))
+    return 10 * math.log10(np.mean(e) + 1e-20)
+
+
+def fit_level(episodes: int = 500, seed: int = 1, split: str = "train") -> dict:
+    """:data:`LEVEL_FIT` from ``episodes`` SemanticAudioNav episodes of ``split`` (training homes and heard sounds
+    only): per episode the first spin's level (:func:`spin_level`) and the path distance from the start to the
+    nearest terminal position; least squares of its logarithm on the level plus one offset per category.
+    Returns the fit and its residual standard deviation (``resid``, in ln units)."""
+    from assets_manifest.soundbank import CATEGORIES
+    from sonicverse_core.tasks import make_env
+
+    env = make_env("SemanticAudioNav", split=split, sounds="heard", sensors=("audio", "pose"))
+    rows = []
+    try:
+        for i in range(episodes):
+            env.reset(seed=int(np.random.SeedSequence([seed, i]).generate_state(1)[0]))  # as `sonicverse eval`
+            u = env.unwrapped
+            w, goals = u.home.world, u.privileged()["goals"]
+            geo = float(np.min(w.grid.geodesic_from_field(w.grid.distance_field(w.pose[:2]), goals)))
+            rows.append((CATEGORIES.index(u.episode.category), spin_level(env), geo))
+    finally:
+        env.close()
+    k, lv, geo = (np.array(c) for c in zip(*rows))
+    X = np.zeros((len(rows), 1 + len(CATEGORIES)))
+    X[:, 0], X[np.arange(len(rows)), 1 + k] = lv, 1.0
+    coef = np.linalg.lstsq(X, np.log(geo), rcond=None)[0]
+    resid = float(np.std(np.log(geo) - X @ coef))
+    return {"slope": round(float(coef[0]), 4), "offset": {c: round(float(v), 2) for c, v in zip(CATEGORIES, coef[1:])},
+            "resid": round(resid, 3), "episodes": episodes}
+
+
+class SemNavAgent(MapAgent):
+    """See the module's docstring."""
+
+    name = "sem-nav"
+    MIN_HEARD = 3  # audible steps before the category is trusted
+    REPLAN = 10  # steps between re-planning
+    FRONTIER_MIN = 1.0  # m: frontiers nearer than this are not worth a drive
+    ARRIVE = 0.15  # m from the approach cell: arrived
+    APPROACH = 1.0  # m: the approach cell lies within this of the target's sighted cells
+    INFLATE = 2  # cells of obstacle dilation (0.2 m, about the robot's radius)
+    BACKOFF = 3  # steps reversing after a bump
+    GAP_W = 4.0  # m of driving worth 1 m nearer the object at the stop
+    SWITCH_M = 2.0  # m better another sighting must score to be taken instead of the one it drives to
+    LEVEL_REJECT = 1.0  # |ln(distance / the level's)| beyond which a sighting is passed over (2.5 sigma of the fit)
+    LATE = 0.7  # after this share of the steps, every sighting counts
+    LEVEL_M = 3.0  # m of path a sighting costs per unit of |ln(its distance from the start / the level's)|
+    BEARING_M = 3.0  # m of path a goal 180 degrees off the heard bearing costs more than one on it (half at 90)
+
+    def env_kwargs(self) -> dict:
+        return {"sensors": ("depth", "semantic", "spectrogram", "audio", "pose", "bump")}
+
+    def reset(self, env, obs, info):
+        super().reset(env, obs, info)
+        from agents.navmap import sound_classifier
+        from assets_manifest.soundbank import CATEGORIES
+        from sonicverse_core.sensors.camera import CLASSES
+
+        self.bit = np.array([CLASSES.index(c) for c in CATEGORIES], np.int64)  # a cell's bit per category
+        self.lut = np.zeros(len(CLASSES), np.int64)
+        self.lut[self.bit] = np.int64(1) << self.bit
+        self.seen = np.zeros((self.SIZE, self.SIZE), np.int64)
+        self.floor = np.zeros((self.SIZE, self.SIZE), bool)
+        self.score = np.zeros(len(CATEGORIES))
+        self.heard = 0
+        self.classify = sound_classifier()
+        self.max_steps = int(env.cfg.max_steps)
+        self.steps = 0
+        self.full_turn = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+        self.spin_left = self.full_turn
+        self.path, self.k, self.since_plan = None, 0, self.REPLAN
+        self.target = None  # (approach xy, the cluster's cells' xy) once the category is seen
+        self.mode = "spin"
+        self.facing = 0
+        self.visited: list[np.ndarray] = []  # approach cells already stopped at (AudioGoal goes on after a stop)
+        self.backoff = 0
+        self.sr = env.cfg.sample_rate
+        self.turn = []  # (yaw, ILD dB) of the audible steps of the first spin
+        self.bearing, self.spun_at = None, None  # the sound's direction from the spin (world yaw, radians)
+        self.spin_e, self.level_db = [], None  # the level heard over the spin
+
+    # --- what it knows ----------------------------------------------------------------------------------------
+    def category(self) -> int:
+        """The index (into CATEGORIES) the ears name so far; -1 before ``MIN_HEARD`` audible steps."""
+        return int(np.argmax(self.score)) if self.heard >= self.MIN_HEARD else -1
+
+    def _observe(self, obs, p, yaw) -> None:
+        from agents.navmap import map_semantic
+        from agents.savi import AUDIBLE
+
+        if "semantic" not in obs or "depth" not in obs:
+            from sonicverse_core.errors import ConfigError
+
+            raise ConfigError("sem-nav needs the env's 'depth' and 'semantic' sensors")
+        depth = np.asarray(obs["depth"])[..., 0]
+        map_depth(self.occ, depth, p, yaw, self._fx, self.robot.camera_height, self.CELL, floor=self.floor)
+        map_semantic(self.seen, depth, np.asarray(obs["semantic"])[..., 0], self.lut, p, yaw, self._fx, self.CELL)
+        if 0 < self.spin_left <= self.full_turn - 3 and "audio" in obs:  # the spin's level (:func:`spin_level`)
+            self.spin_e.append(float(np.mean(np.square(np.asarray(obs["audio"], float)))))
+        spec = np.asarray(obs["spectrogram"])
+        if float(spec.mean()) > AUDIBLE:
+            self.score += self.classify(spec)
+            self.heard += 1
+            if self.spin_left > 0 and "audio" in obs:
+                self.turn.append((math.radians(yaw), ild(np.asarray(obs["audio"]), self.sr)))
+
+    def expected_distance(self) -> float | None:
+        """The goal's path distance from the start (m) that the level of the first spin suggests for the category
+        the ears name (:data:`LEVEL_FIT`); None before both are known."""
+        k = self.category()
+        if self.level_db is None or k < 0:
+            return None
+        from assets_manifest.soundbank import CATEGORIES
+
+        slope, offset = LEVEL_FIT["slope"], LEVEL_FIT["offset"][CATEGORIES[k]]
+        return float(math.exp(slope * self.level_db + offset))
+
+    def _fit_bearing(self, p) -> None:
+        """The sound's direction from the spin: the level difference between the ears (0.7-4 kHz) against the
+        heading, fitted as c + A sin(b - yaw) (the left ear louder when the sound is on the left); b is the bearing.
+        Over 20 validation episodes its median error to the first 1.5 m of the shortest path was 43 degrees (chance:
+        90); to the straight line to the goal, 59."""
+        self.spun_at = np.array(p, float)
+        if len(self.turn) < 8:
+            return
+        th, d = np.array(self.turn).T
+        coef = np.linalg.lstsq(np.c_[np.ones(len(th)), np.cos(th), -np.sin(th)], d, rcond=None)[0]
+        if math.hypot(coef[1], coef[2]) > 0.0:
+            self.bearing = math.atan2(coef[1], coef[2])
+
+    def _off_bearing(self, xy) -> np.ndarray:
+        """Per point, 1 - cos of its angle off the heard bearing as seen from where the robot spun (0: none)."""
+        if self.bearing is None:
+            return np.zeros(len(xy))
+        v = np.asarray(xy, float) - self.spun_at
+        return 1.0 - np.cos(np.arctan2(v[:, 1], v[:, 0]) - self.bearing)
+
+    def _blocked(self, inflate: int) -> np.ndarray:
+        from scipy.ndimage import binary_dilation
+
+        occ = self.occ >= 2
+        return binary_dilation(occ, iterations=inflate) if inflate else occ
+
+    def _xy(self, cells) -> np.ndarray:
+        return (np.asarray(cells, float) - self.SIZE // 2 + 0.5) * self.CELL
+
+    # --- deciding where to go ---------------------------------------------------------------------------------
+    def _choose(self, p) -> None:
+        """Plan: to the category's nearest sighting if there is one, else to the nearest frontier."""
+        from scipy.ndimage import binary_dilation, label
+
+        s = np.clip(self._cell(p), 0, self.SIZE - 1)
+        for inflate in range(self.INFLATE, -1, -1):  # in a narrow doorway the dilated map may shut the robot in
+            blocked = self._blocked(inflate)
+            blocked[s[0], s[1]] = False
+            dist, pred = grid_field(blocked, s)
+            dist = dist.reshape(self.SIZE, self.SIZE)
+            if np.count_nonzero(np.isfinite(dist)) >= 50:
+                break
+        k = self.category()
+        goal, self.mode = None, "explore"
+        if k >= 0:
+            mine = ((self.seen >> self.bit[k]) & 1).astype(bool)
+            if mine.any():
+                lab, n = label(binary_dilation(mine, iterations=2))  # a cluster: sightings within 0.2 m
+                r = int(round(self.APPROACH / self.CELL))
+                best, keep = None, None
+                far = self.expected_distance()  # which of them: the one as far from the start as it sounded
+                if far is not None:
+                    o = np.clip(self._cell(np.zeros(2)), 0, self.SIZE - 1)  # where it started (and spun)
+                    b0 = blocked.copy()
+                    b0[o[0], o[1]] = False
+                    from_start = grid_field(b0, o)[0].reshape(self.SIZE, self.SIZE)
+                for i in range(1, n + 1):
+                    cells = np.argwhere((lab == i) & mine)
+                    xy = self._xy(cells)
+                    if any(np.hypot(*(xy - v).T).min() < self.APPROACH for v in self.visited):
+                        continue
+                    near = binary_dilation(mine & (lab == i), iterations=r) & np.isfinite(dist) & ~blocked
+                    if (near & self.floor).any():  # where it has seen the floor, if it has
+                        near &= self.floor
+                    if not near.any():
+                        continue
+                    cand = np.argwhere(near)
+                    # the reachable free cell to stop at: near the object, and not far to drive
+                    gap = np.min(np.hypot(*(cand[:, None, :] - cells[None, :, :]).transpose(2, 0, 1)), axis=1)
+                    cost = (dist[cand[:, 0], cand[:, 1]] + self.GAP_W * gap) * self.CELL
+                    j = int(np.argmin(cost))
+                    score = float(cost[j]) + self.BEARING_M * float(np.min(self._off_bearing(xy)))
+                    if far is not None and np.isfinite(from_start[cand[j, 0], cand[j, 1]]):
+                        off = abs(math.log(max(from_start[cand[j, 0], cand[j, 1]] * self.CELL, 0.5) / far))
+                        if off > self.LEVEL_REJECT and self.steps < self.LATE * self.max_steps:
+                            continue  # not where it sounded: look on while there is time
+                        score += self.LEVEL_M * off
+                    if best is None or score < best[0]:
+                        best = (score, cand[j], xy)
+                    if self.target is not None and np.min(np.hypot(*(xy - self.target[1][0]).T)) < 0.3:
+                        keep = (score, cand[j], xy)  # the cluster it was driving to
+                if keep is not None and keep[0] < best[0] + self.SWITCH_M:
+                    best = keep
+                if best is not None:
+                    goal, self.target, self.mode = best[1], (self._xy(best[1]), best[2]), "approach"
+        if goal is None:
+            self.target = None
+            unknown = (self.occ < 2) & ~self.floor
+            front = self.floor & ~blocked & binary_dilation(unknown) & np.isfinite(dist)  # seen floor by unmapped
+            front &= dist * self.CELL >= self.FRONTIER_MIN
+            if front.any():
+                cand = np.argwhere(front)
+                cost = dist[cand[:, 0], cand[:, 1]] * self.CELL + self.BEARING_M * self._off_bearing(self._xy(cand))
+                goal = cand[int(np.argmin(cost))]
+        if goal is None:  # nothing left to explore on the map: wander to a random reachable cell
+            cand = np.argwhere(np.isfinite(dist) & (dist * self.CELL >= self.FRONTIER_MIN))
+            if len(cand):
+                goal = cand[int(self.rng.integers(len(cand)))]
+        cells = grid_trace(pred, self.SIZE, s, goal) if goal is not None else None
+        self.path = self._xy(cells) if cells else np.array([p])
+        self.k = min(2, len(self.path) - 1)
+        self.since_plan = 0
+
+    def act(self, obs, info):
+        p, yaw = self._pose(obs)
+        self._observe(obs, p, yaw)
+        self.steps += 1
+        if self.stop_dim and self.steps >= self.max_steps:
+            return self._out([0.0, 0.0], stop=True)
+        turn = _wheels(0.0, math.radians(self.robot.max_turn_deg), self.robot)
+        if self.spin_left > 0:
+            self.spin_left -= 1
+            if self.spin_left == 0:
+                self._fit_bearing(p)
+                if self.spin_e:
+                    self.level_db = 10 * math.log10(np.mean(self.spin_e) + 1e-20)
+                self.since_plan = self.REPLAN
+            return self._out(turn)
+        bumped = obs.get("bump") is not None and obs["bump"][0] > 0
+        if bumped and self.mode != "face":  # something the camera missed (a door leaf edge-on): map it, back off
+            self._mark_contact(p, yaw)
+            self.backoff = self.BACKOFF
+        if self.backoff > 0:
+            self.backoff -= 1
+            if self.backoff == 0:
+                self.since_plan = self.REPLAN
+            return self._out(_wheels(-0.3 * self.robot.max_speed, 0.0, self.robot))
+        if self.mode == "face":
+            return self._face_target(p, yaw)
+        self.since_plan += 1
+        if self.path is None or self.since_plan >= self.REPLAN:
+            self._choose(p)
+        if self.mode == "approach" and np.linalg.norm(self.target[0] - p) < self.ARRIVE:
+            self.mode = "face"
+            return self._face_target(p, yaw)
+        while self.k < len(self.path) - 1 and np.linalg.norm(self.path[self.k] - p) < 0.2:
+            self.k += 1
+        if len(self.path) < 2 or (self.k >= len(self.path) - 1 and np.linalg.norm(self.path[-1] - p) < 0.1):
+            self.since_plan = self.REPLAN  # arrived at a frontier (or nowhere to go): choose again next step
+            return self._out(turn)
+        return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt,
+                                 slow_within=0.3 if self.mode == "approach" else 0.0))
+
+    def _mark_contact(self, p, yaw) -> None:
+        """A bump: obstacle cells where the robot's front touched (ahead and 30 degrees either side)."""
+        for a in (-30.0, 0.0, 30.0):
+            b = math.radians(yaw + a)
+            c = self._cell(p + (self.robot.radius + 0.05) * np.array([math.cos(b), math.sin(b)]))
+            if 0 <= c[0] < self.SIZE and 0 <= c[1] < self.SIZE:
+                self.occ[c[0], c[1]] = max(int(self.occ[c[0], c[1]]), 2)
+
+    def _face_target(self, p, yaw):
+        """Turn to the target's nearest sighted cell, then stop (or, without a stop action, wait)."""
+        cells = self.target[1]
+        q = cells[int(np.argmin(np.linalg.norm(cells - p, axis=1)))]
+        err = (math.degrees(math.atan2(q[1] - p[1], q[0] - p[0])) - yaw + 180.0) % 360.0 - 180.0
+        self.facing += 1
+        if abs(err) < 10.0 or self.facing > 20:
+            if not self.stop_dim:  # AudioGoal: not ended here, so not this one; try the next sighting
+                self.visited.append(self.target[0])
+                self.mode, self.facing, self.since_plan = "explore", 0, self.REPLAN
+            return self._out([0.0, 0.0], stop=True)
+        rate = math.copysign(min(abs(math.radians(err)) / self.dt * 0.8, math.radians(self.robot.max_turn_deg)), err)
+        return self._out(_wheels(0.0, rate, self.robot))

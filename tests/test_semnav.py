@@ -1,0 +1,88 @@
+"""The scripted semantic navigator (`sem-nav`): it hears which category sounds and roughly from where, finds an object
+of that category with its semantic camera and stops beside it, reading its sensors only."""
+import math
+
+import numpy as np
+import pytest
+
+
+def test_the_spin_recovers_the_bearing_from_the_level_difference():
+    """ild: the louder ear's side is positive on the left; the spin's fit c + A sin(b - yaw) gives b back."""
+    from agents.semnav import SemNavAgent, ild
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=1600)
+    assert ild(np.stack([2 * x, x]), 16000) == pytest.approx(20 * math.log10(2), abs=0.01)
+    assert ild(np.stack([x, 2 * x]), 16000) < 0
+    ag = SemNavAgent.__new__(SemNavAgent)
+    for b in (-150.0, -40.0, 10.0, 95.0):
+        yaws = np.radians(np.arange(0, 360, 18.0))
+        ag.turn = [(y, 1.5 + 3 * math.sin(math.radians(b) - y) + rng.normal(0, 0.3)) for y in yaws]
+        ag.bearing = None
+        ag._fit_bearing(np.zeros(2))
+        err = (math.degrees(ag.bearing) - b + 180) % 360 - 180
+        assert abs(err) < 10, (b, err)
+
+
+def test_the_level_fit_covers_every_category_and_louder_means_nearer():
+    from agents.semnav import LEVEL_FIT
+    from assets_manifest.soundbank import CATEGORIES
+
+    assert set(LEVEL_FIT["offset"]) == set(CATEGORIES)
+    assert LEVEL_FIT["slope"] < 0  # a louder spin: a nearer goal
+
+
+@pytest.mark.slow
+def test_the_spin_level_tells_the_distance_in_homes_it_was_not_fitted_in():
+    """LEVEL_FIT still describes the sound: on 40 validation episodes (seed 3; the fit saw training homes only) its
+    predicted path distance is off by much less (in ln units) than the distances spread: 0.35 against 0.61 when
+    written (0.32 against 0.55 over 100)."""
+    from agents.semnav import LEVEL_FIT, spin_level
+    from sonicverse_core.tasks import make_env
+
+    env = make_env("SemanticAudioNav", split="val", sensors=("audio", "pose"))
+    err, logd = [], []
+    try:
+        for i in range(40):
+            env.reset(seed=int(np.random.SeedSequence([3, i]).generate_state(1)[0]))
+            u = env.unwrapped
+            w, goals = u.home.world, u.privileged()["goals"]
+            d = float(np.min(w.grid.geodesic_from_field(w.grid.distance_field(w.pose[:2]), goals)))
+            pred = LEVEL_FIT["slope"] * spin_level(env) + LEVEL_FIT["offset"][u.episode.category]
+            err.append(pred - math.log(d))
+            logd.append(math.log(d))
+    finally:
+        env.close()
+    assert np.std(err) < 0.75 * np.std(logd) and abs(np.mean(err)) < 0.2, (np.std(err), np.std(logd), np.mean(err))
+
+
+@pytest.mark.parametrize("i", [1, 4, 9])
+def test_sem_nav_finds_the_sounding_category_and_stops_beside_it(i):
+    """Validation episodes 1, 4 and 9 of `sonicverse eval --task SemanticAudioNav --split val --seed 0` (a toilet,
+    a standing TV, a cushion): it names the category by ear, stops within the success radius of a terminal
+    position, and never reads privileged state (``env.privileged`` raises)."""
+    from agents import make_agent
+    from app.tasks.evaluate import episode_seed
+    from assets_manifest.soundbank import CATEGORIES
+    from sonicverse_core.tasks import make_env
+
+    s = episode_seed(0, i)
+    ag = make_agent("sem-nav", np.random.default_rng(s), "SemanticAudioNav")
+    env = make_env("SemanticAudioNav", split="val", **ag.env_kwargs())
+    try:
+        obs, info = env.reset(seed=s)
+        u = env.unwrapped
+
+        def no_peeking():
+            raise AssertionError("sem-nav read privileged state")
+
+        u.privileged = no_peeking
+        ag.reset(env, obs, info)
+        done = False
+        while not done:
+            obs, _, term, trunc, info = env.step(ag.act(obs, info))
+            done = term or trunc
+        assert CATEGORIES[ag.category()] == u.episode.category
+        assert info["metrics"]["success"] == 1.0 and term and info["steps"] < 200, info["metrics"]
+    finally:
+        env.close()
