@@ -221,8 +221,9 @@ class SemNavAgent(MapAgent):
 
     # --- deciding where to go ---------------------------------------------------------------------------------
     def _choose(self, p) -> None:
-        """Plan: to the category's nearest sighting if there is one, else to the nearest frontier."""
-        from scipy.ndimage import binary_dilation, label
+        """Plan: to the named category's best sighting if there is one (:meth:`_sighting`), else to the frontier
+        cheapest by path plus its angle off the bearing, else to a random reachable cell."""
+        from scipy.ndimage import binary_dilation
 
         s = np.clip(self._cell(p), 0, self.SIZE - 1)
         for inflate in range(self.INFLATE, -1, -1):  # in a narrow doorway the dilated map may shut the robot in
@@ -232,51 +233,9 @@ class SemNavAgent(MapAgent):
             dist = dist.reshape(self.SIZE, self.SIZE)
             if np.count_nonzero(np.isfinite(dist)) >= 50:
                 break
-        k = self.category()
-        goal, self.mode = None, "explore"
-        if k >= 0:
-            mine = ((self.seen >> self.bit[k]) & 1).astype(bool)
-            if mine.any():
-                lab, n = label(binary_dilation(mine, iterations=2))  # a cluster: sightings within 0.2 m
-                r = int(round(self.APPROACH / self.CELL))
-                best, keep = None, None
-                far = self.expected_distance()  # which of them: the one as far from the start as it sounded
-                if far is not None:
-                    o = np.clip(self._cell(np.zeros(2)), 0, self.SIZE - 1)  # where it started (and spun)
-                    b0 = blocked.copy()
-                    b0[o[0], o[1]] = False
-                    from_start = grid_field(b0, o)[0].reshape(self.SIZE, self.SIZE)
-                for i in range(1, n + 1):
-                    cells = np.argwhere((lab == i) & mine)
-                    xy = self._xy(cells)
-                    if any(np.hypot(*(xy - v).T).min() < self.APPROACH for v in self.visited):
-                        continue
-                    near = binary_dilation(mine & (lab == i), iterations=r) & np.isfinite(dist) & ~blocked
-                    if (near & self.floor).any():  # where it has seen the floor, if it has
-                        near &= self.floor
-                    if not near.any():
-                        continue
-                    cand = np.argwhere(near)
-                    # the reachable free cell to stop at: near the object, and not far to drive
-                    gap = np.min(np.hypot(*(cand[:, None, :] - cells[None, :, :]).transpose(2, 0, 1)), axis=1)
-                    cost = (dist[cand[:, 0], cand[:, 1]] + self.GAP_W * gap) * self.CELL
-                    j = int(np.argmin(cost))
-                    score = float(cost[j]) + self.BEARING_M * float(np.min(self._off_bearing(xy)))
-                    if far is not None and np.isfinite(from_start[cand[j, 0], cand[j, 1]]):
-                        off = abs(math.log(max(from_start[cand[j, 0], cand[j, 1]] * self.CELL, 0.5) / far))
-                        if off > self.LEVEL_REJECT and self.steps < self.LATE * self.max_steps:
-                            continue  # not where it sounded: look on while there is time
-                        score += self.LEVEL_M * off
-                    if best is None or score < best[0]:
-                        best = (score, cand[j], xy)
-                    if self.target is not None and np.min(np.hypot(*(xy - self.target[1][0]).T)) < 0.3:
-                        keep = (score, cand[j], xy)  # the cluster it was driving to
-                if keep is not None and keep[0] < best[0] + self.SWITCH_M:
-                    best = keep
-                if best is not None:
-                    goal, self.target, self.mode = best[1], (self._xy(best[1]), best[2]), "approach"
+        goal, self.mode = self._sighting(blocked, dist), "approach"
         if goal is None:
-            self.target = None
+            self.target, self.mode = None, "explore"
             unknown = (self.occ < 2) & ~self.floor
             front = self.floor & ~blocked & binary_dilation(unknown) & np.isfinite(dist)  # seen floor by unmapped
             front &= dist * self.CELL >= self.FRONTIER_MIN
@@ -292,6 +251,61 @@ class SemNavAgent(MapAgent):
         self.path = self._xy(cells) if cells else np.array([p])
         self.k = min(2, len(self.path) - 1)
         self.since_plan = 0
+
+    def _sighting(self, blocked: np.ndarray, dist: np.ndarray):
+        """The cell to stop at beside the named category's best sighted cluster (sightings within 0.2 m), and
+        ``self.target`` set to (that cell's xy, the cluster's cells' xy); None when there is none to go to. Per
+        cluster: the reachable free cell (seen floor, where there is some) within ``APPROACH`` of it cheapest by
+        path plus ``GAP_W`` times its gap to the cluster; the cluster's score adds its angle off the bearing and
+        how far its distance from the start is from the level's (one off by more than ``LEVEL_REJECT`` is passed
+        over before ``LATE``). The cluster it drives to is kept unless another scores ``SWITCH_M`` better."""
+        from scipy.ndimage import binary_dilation, label
+
+        k = self.category()
+        if k < 0:
+            return None
+        mine = ((self.seen >> self.bit[k]) & 1).astype(bool)
+        if not mine.any():
+            return None
+        lab, n = label(binary_dilation(mine, iterations=2))
+        r = int(round(self.APPROACH / self.CELL))
+        far = self.expected_distance()  # which of them: the one as far from the start as it sounded
+        if far is not None:
+            o = np.clip(self._cell(np.zeros(2)), 0, self.SIZE - 1)  # where it started (and turned)
+            b0 = blocked.copy()
+            b0[o[0], o[1]] = False
+            from_start = grid_field(b0, o)[0].reshape(self.SIZE, self.SIZE)
+        best, keep = None, None
+        for i in range(1, n + 1):
+            cells = np.argwhere((lab == i) & mine)
+            xy = self._xy(cells)
+            if any(np.hypot(*(xy - v).T).min() < self.APPROACH for v in self.visited):
+                continue
+            near = binary_dilation(mine & (lab == i), iterations=r) & np.isfinite(dist) & ~blocked
+            if (near & self.floor).any():
+                near &= self.floor
+            if not near.any():
+                continue
+            cand = np.argwhere(near)
+            gap = np.min(np.hypot(*(cand[:, None, :] - cells[None, :, :]).transpose(2, 0, 1)), axis=1)
+            cost = (dist[cand[:, 0], cand[:, 1]] + self.GAP_W * gap) * self.CELL
+            j = int(np.argmin(cost))
+            score = float(cost[j]) + self.BEARING_M * float(np.min(self._off_bearing(xy)))
+            if far is not None and np.isfinite(from_start[cand[j, 0], cand[j, 1]]):
+                off = abs(math.log(max(from_start[cand[j, 0], cand[j, 1]] * self.CELL, 0.5) / far))
+                if off > self.LEVEL_REJECT and self.steps < self.LATE * self.max_steps:
+                    continue  # not where it sounded: look on while there is time
+                score += self.LEVEL_M * off
+            if best is None or score < best[0]:
+                best = (score, cand[j], xy)
+            if self.target is not None and np.min(np.hypot(*(xy - self.target[1][0]).T)) < 0.3:
+                keep = (score, cand[j], xy)  # the cluster it was driving to
+        if keep is not None and keep[0] < best[0] + self.SWITCH_M:
+            best = keep
+        if best is None:
+            return None
+        self.target = (self._xy(best[1]), best[2])
+        return best[1]
 
     def act(self, obs, info):
         p, yaw = self._pose(obs)
