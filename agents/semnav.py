@@ -53,7 +53,8 @@ _BAND: dict = {}
 
 # ln(path distance from the start to the goal, m) = slope x (the spin's level, dB) + the category's offset: least
 # squares over 500 training episodes, `fit_level(500, seed=1)` (residual 0.387 in ln units, a factor of 1.47, where
-# the distances alone spread 0.56). Made on session 41's sound; re-fit when the sound changes
+# the distances alone spread 0.56). Made on session 41's sound; re-fit when the sound changes. It assumes the tasks'
+# default source gain (TaskConfig.source_gain (1, 1)): with the sim-to-real range, the distance is off by the gain
 LEVEL_FIT = {"slope": -0.067, "offset": {
     "straight_chair": -0.37, "breakfast_table": -1.27, "picture": -0.57, "bottom_cabinet": -1.63, "cushion": -1.0,
     "sofa": -0.22, "bed": -0.42, "shelf": -0.69, "sink": -1.07, "toilet": -0.26,
