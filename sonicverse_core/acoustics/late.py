@@ -180,12 +180,12 @@ class LateReverb:
         st = LateState(cap, self.groups, cfg.block, modes=1 + extra if self.modal else 0)
         buildup = cfg.tail_buildup > 0 and self.groups > 1  # other rooms' sends build up (rooms known)
 
-        def grown_up():
+        def build_up():
             return TailBuildUp(cfg.tail_buildup, float(cfg.sample_rate), self.groups, cfg.block) if buildup else None
 
-        st.buildup = grown_up()
+        st.buildup = build_up()
         if self.modal:
-            st.buildup_slow = grown_up()
+            st.buildup_slow = build_up()
         if cfg.reverb == "fdn":
             from sonicverse_core.acoustics.reverb import FDNReverb
 
@@ -218,7 +218,7 @@ class LateReverb:
                                                            probe_edts=self.tail_edt, groups=self.groups,
                                                            direct=cfg.output != "mono", direct_seed=seed,
                                                            **self.tail_colour()),
-                                         cfg.block, grown_up())
+                                         cfg.block, build_up())
                            for _ in range(extra)]
         return st
 
