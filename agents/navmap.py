@@ -135,6 +135,45 @@ def sound_classifier(path=CLASSIFIER):
     return _classifier[key]
 
 
+def category_bits() -> tuple[np.ndarray, np.ndarray]:
+    """(bit, lut): each sound category's bit in a sightings grid (its camera class id), and per camera class id its
+    category's bit mask (0: not one of the categories), for :func:`map_semantic`."""
+    from assets_manifest.soundbank import CATEGORIES
+    from sonicverse_core.sensors.camera import CLASSES
+
+    bit = np.array([CLASSES.index(c) for c in CATEGORIES], np.int64)
+    lut = np.zeros(len(CLASSES), np.int64)
+    lut[bit] = np.int64(1) << bit
+    return bit, lut
+
+
+class SoundNamer:
+    """Which category sounds: while the goal is heard (the spectrogram's mean above ``agents.savi.AUDIBLE``) the
+    goal predictor (:func:`sound_classifier`) scores the categories, and the scores add up as log-likelihoods."""
+
+    def __init__(self):
+        from assets_manifest.soundbank import CATEGORIES
+
+        self.score = np.zeros(len(CATEGORIES))
+        self.heard = 0
+        self.classify = sound_classifier()
+
+    def hear(self, spec) -> bool:
+        """Score one step's spectrogram if the goal is heard in it; whether it was."""
+        from agents.savi import AUDIBLE
+
+        spec = np.asarray(spec)
+        if float(spec.mean()) <= AUDIBLE:
+            return False
+        self.score += self.classify(spec)
+        self.heard += 1
+        return True
+
+    def category(self, min_heard: int = 1) -> int:
+        """The index (into CATEGORIES) of the category named so far; -1 before ``min_heard`` audible steps."""
+        return int(np.argmax(self.score)) if self.heard >= min_heard else -1
+
+
 class SemNavMap(NavEgoMap):
     """:class:`NavEgoMap` with a fifth channel for SemanticAudioNav (``train --map`` there; ``map_kind`` "sem"):
 
@@ -158,16 +197,8 @@ class SemNavMap(NavEgoMap):
 
     def reset(self, env, obs, info) -> None:
         super().reset(env, obs, info)
-        from assets_manifest.soundbank import CATEGORIES
-        from sonicverse_core.sensors.camera import CLASSES
-
-        self.bit = np.array([CLASSES.index(c) for c in CATEGORIES], np.int64)  # a cell's bit per category
-        self.lut = np.zeros(len(CLASSES), np.int64)  # a camera class id -> its category's bit mask (0: none)
-        self.lut[self.bit] = np.int64(1) << self.bit
+        self.bit, self.lut = category_bits()
         self.seen = np.zeros((self.n, self.n), np.int64)
-        self.score = np.zeros(len(CATEGORIES))
-        self.heard = 0
-        self.classify = sound_classifier()
         self.action = None
         if self.teach:  # train --teacher scripted: sem-nav acts on the same observations (seeded by the episode)
             import zlib
@@ -177,25 +208,24 @@ class SemNavMap(NavEgoMap):
             seed = zlib.crc32(str(env.unwrapped.episode.episode_id).encode())
             self.teacher = SemNavAgent(np.random.default_rng(seed))
             self.teacher.reset(env, obs, info)
+            self.ears = self.teacher.ears  # its ears name the sound for both (one classification a step)
+        else:
+            self.ears = SoundNamer()
 
     def category(self) -> int:
         """The index (into CATEGORIES) of the category the ears name so far, -1 before anything was heard."""
-        return int(np.argmax(self.score)) if self.heard else -1
+        return self.ears.category()
 
     def observe(self, obs, info) -> np.ndarray:
-        from agents.savi import AUDIBLE
-
         if "semantic" not in obs:
             from sonicverse_core.errors import ConfigError
 
             raise ConfigError("the semantic map needs the env's 'semantic' sensor")
         img = super().observe(obs, info)
         if self.teach:
-            self.action = self.teacher.act(obs, info)  # the label (``ego.action``), not taken here
-        spec = np.asarray(obs["spectrogram"])
-        if float(spec.mean()) > AUDIBLE:
-            self.score += self.classify(spec)
-            self.heard += 1
+            self.action = self.teacher.act(obs, info)  # the label (``ego.action``), not taken here; it hears too
+        else:
+            self.ears.hear(obs["spectrogram"])
         x, y, s, c = (float(v) for v in obs["pose"])
         if "depth" in obs:
             map_semantic(self.seen, np.asarray(obs["depth"])[..., 0], np.asarray(obs["semantic"])[..., 0], self.lut,

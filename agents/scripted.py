@@ -43,6 +43,23 @@ def _pursue(pose_xy, yaw_deg, target, robot, dt, slow_within: float = 0.0) -> np
     return _wheels(v, w, robot)
 
 
+def turn_steps(robot, dt: float) -> int:
+    """Steps of turning on the spot at the robot's top rate that make a full turn (and one more)."""
+    return int(math.ceil(360.0 / (robot.max_turn_deg * dt))) + 1
+
+
+def turn_toward(p, yaw_deg: float, xy, robot, dt: float, offset: float = 0.0,
+                tol: float = 8.0) -> tuple[np.ndarray, bool]:
+    """Wheel commands turning a robot at ``p`` facing ``yaw_deg`` on the spot toward ``xy`` (plus ``offset``
+    degrees), and whether it already faces it within ``tol`` degrees (then the wheels are still)."""
+    v = np.asarray(xy, float) - np.asarray(p, float)
+    err = (math.degrees(math.atan2(v[1], v[0])) + offset - yaw_deg + 180.0) % 360.0 - 180.0
+    if abs(err) < tol:
+        return np.zeros(2), True
+    rate = math.copysign(min(abs(math.radians(err)) / dt * 0.8, math.radians(robot.max_turn_deg)), err)
+    return _wheels(0.0, rate, robot), False
+
+
 def next_waypoint(grid, path: np.ndarray, k: int, p: np.ndarray) -> int:
     """The waypoint of ``path`` to steer for from ``p``, at or after ``k``: past those within 0.2 m whose next one is
     in line of sight, and always past one within 5 cm (it gives no heading: steering for it, a robot spins on the
@@ -149,12 +166,7 @@ class MapDriver(Agent):
                        slow_within=slow)
 
     def _face(self, w, xy, offset: float = 0.0) -> tuple[np.ndarray, bool]:
-        v = np.asarray(xy) - w.pose[:2]
-        err = (math.degrees(math.atan2(v[1], v[0])) + offset - w.pose[2] + 180.0) % 360.0 - 180.0
-        if abs(err) < 8.0:
-            return np.zeros(2), True
-        rate = math.copysign(min(abs(math.radians(err)) / self.dt * 0.8, math.radians(self.robot.max_turn_deg)), err)
-        return _wheels(0.0, rate, self.robot), False
+        return turn_toward(w.pose[:2], w.pose[2], xy, self.robot, self.dt, offset)
 
 
 class MapAgent(Agent):
@@ -217,7 +229,7 @@ class GanItdAgent(MapAgent):
 
     def _listen(self) -> None:
         """Start a full turn in place, voting for the sound's bearing."""
-        self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+        self.spin_left = turn_steps(self.robot, self.dt)
         self.votes[:] = 0
 
     # --- perception -------------------------------------------------------------------------------------------
@@ -333,7 +345,7 @@ class GanAgent(MapAgent):
         self.heard, self.quiet, self.near_now = 0, 0, False
         self.goal = None
         self.closest, self.closest_to, self.no_closer = math.inf, np.zeros(2), 0
-        self.spin_left = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+        self.spin_left = turn_steps(self.robot, self.dt)
         self.path, self.k, self.since_plan, self.circle = None, 0, 0, 0
 
     def _hear(self, obs, p, yaw) -> None:

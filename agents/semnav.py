@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from agents.scripted import MapAgent, _pursue, _wheels, grid_field, grid_trace, map_depth
+from agents.scripted import MapAgent, _pursue, _wheels, grid_field, grid_trace, map_depth, turn_steps, turn_toward
 
 
 def ild(audio: np.ndarray, sr: int) -> float:
@@ -69,34 +69,40 @@ def spin_level(env) -> float:
     turn = _wheels(0.0, math.radians(robot.max_turn_deg), robot)
     act = np.r_[turn, -1.0][:env.action_space.shape[0]].astype(np.float32)
     e = []
-    n = int(math.ceil(360.0 / (robot.max_turn_deg * dt))) + 1
-    for t in range(n - 1):
+    for t in range(turn_steps(robot, dt) - 1):
         obs, *_ = env.step(act)
         if t >= 2:
             e.append(float(np.mean(np.square(np.asarray(obs["audio"], float)))))
     return 10 * math.log10(np.mean(e) + 1e-20)
 
 
-def fit_level(episodes: int = 500, seed: int = 1, split: str = "train") -> dict:
-    """:data:`LEVEL_FIT` from ``episodes`` SemanticAudioNav episodes of ``split`` (training homes and heard sounds
-    only): per episode the first spin's level (:func:`spin_level`) and the path distance from the start to the
-    nearest terminal position; least squares of its logarithm on the level plus one offset per category.
-    Returns the fit and its residual standard deviation (``resid``, in ln units)."""
-    from assets_manifest.soundbank import CATEGORIES
+def level_rows(episodes: int, seed: int, split: str = "train") -> list[tuple[str, float, float]]:
+    """Per SemanticAudioNav episode of ``split`` (heard sounds; episode i seeded as `sonicverse eval --seed` seeds
+    it): its category, the first spin's level (:func:`spin_level`) and the path distance from the start to the
+    nearest terminal position."""
     from sonicverse_core.tasks import make_env
 
     env = make_env("SemanticAudioNav", split=split, sounds="heard", sensors=("audio", "pose"))
     rows = []
     try:
         for i in range(episodes):
-            env.reset(seed=int(np.random.SeedSequence([seed, i]).generate_state(1)[0]))  # as `sonicverse eval`
-            u = env.unwrapped
-            w, goals = u.home.world, u.privileged()["goals"]
-            geo = float(np.min(w.grid.geodesic_from_field(w.grid.distance_field(w.pose[:2]), goals)))
-            rows.append((CATEGORIES.index(u.episode.category), spin_level(env), geo))
+            env.reset(seed=int(np.random.SeedSequence([seed, i]).generate_state(1)[0]))
+            ep = env.unwrapped.episode
+            rows.append((ep.category, spin_level(env), float(ep.geodesic)))
     finally:
         env.close()
-    k, lv, geo = (np.array(c) for c in zip(*rows))
+    return rows
+
+
+def fit_level(episodes: int = 500, seed: int = 1, split: str = "train") -> dict:
+    """:data:`LEVEL_FIT` from ``episodes`` episodes of ``split`` (:func:`level_rows`; training homes only): least
+    squares of the distance's logarithm on the level plus one offset per category. Returns the fit and its
+    residual standard deviation (``resid``, in ln units)."""
+    from assets_manifest.soundbank import CATEGORIES
+
+    rows = level_rows(episodes, seed, split)
+    k = np.array([CATEGORIES.index(c) for c, _, _ in rows])
+    lv, geo = np.array([r[1] for r in rows]), np.array([r[2] for r in rows])
     X = np.zeros((len(rows), 1 + len(CATEGORIES)))
     X[:, 0], X[np.arange(len(rows)), 1 + k] = lv, 1.0
     coef = np.linalg.lstsq(X, np.log(geo), rcond=None)[0]
@@ -128,21 +134,15 @@ class SemNavAgent(MapAgent):
 
     def reset(self, env, obs, info):
         super().reset(env, obs, info)
-        from agents.navmap import sound_classifier
-        from assets_manifest.soundbank import CATEGORIES
-        from sonicverse_core.sensors.camera import CLASSES
+        from agents.navmap import SoundNamer, category_bits
 
-        self.bit = np.array([CLASSES.index(c) for c in CATEGORIES], np.int64)  # a cell's bit per category
-        self.lut = np.zeros(len(CLASSES), np.int64)
-        self.lut[self.bit] = np.int64(1) << self.bit
+        self.bit, self.lut = category_bits()
         self.seen = np.zeros((self.SIZE, self.SIZE), np.int64)
         self.floor = np.zeros((self.SIZE, self.SIZE), bool)
-        self.score = np.zeros(len(CATEGORIES))
-        self.heard = 0
-        self.classify = sound_classifier()
+        self.ears = SoundNamer()
         self.max_steps = int(env.cfg.max_steps)
         self.steps = 0
-        self.full_turn = int(math.ceil(360.0 / (self.robot.max_turn_deg * self.dt))) + 1
+        self.full_turn = turn_steps(self.robot, self.dt)
         self.spin_left = self.full_turn
         self.path, self.k, self.since_plan = None, 0, self.REPLAN
         self.target = None  # (approach xy, the cluster's cells' xy) once the category is seen
@@ -158,11 +158,10 @@ class SemNavAgent(MapAgent):
     # --- what it knows ----------------------------------------------------------------------------------------
     def category(self) -> int:
         """The index (into CATEGORIES) the ears name so far; -1 before ``MIN_HEARD`` audible steps."""
-        return int(np.argmax(self.score)) if self.heard >= self.MIN_HEARD else -1
+        return self.ears.category(self.MIN_HEARD)
 
     def _observe(self, obs, p, yaw) -> None:
         from agents.navmap import map_semantic
-        from agents.savi import AUDIBLE
 
         if "semantic" not in obs or "depth" not in obs:
             from sonicverse_core.errors import ConfigError
@@ -173,10 +172,7 @@ class SemNavAgent(MapAgent):
         map_semantic(self.seen, depth, np.asarray(obs["semantic"])[..., 0], self.lut, p, yaw, self._fx, self.CELL)
         if 0 < self.spin_left <= self.full_turn - 3 and "audio" in obs:  # the spin's level (:func:`spin_level`)
             self.spin_e.append(float(np.mean(np.square(np.asarray(obs["audio"], float)))))
-        spec = np.asarray(obs["spectrogram"])
-        if float(spec.mean()) > AUDIBLE:
-            self.score += self.classify(spec)
-            self.heard += 1
+        if self.ears.hear(obs["spectrogram"]):
             if self.spin_left > 0 and "audio" in obs:
                 self.turn.append((math.radians(yaw), ild(np.asarray(obs["audio"]), self.sr)))
 
@@ -360,12 +356,11 @@ class SemNavAgent(MapAgent):
         """Turn to the target's nearest sighted cell, then stop (or, without a stop action, wait)."""
         cells = self.target[1]
         q = cells[int(np.argmin(np.linalg.norm(cells - p, axis=1)))]
-        err = (math.degrees(math.atan2(q[1] - p[1], q[0] - p[0])) - yaw + 180.0) % 360.0 - 180.0
+        wheels, facing = turn_toward(p, yaw, q, self.robot, self.dt, tol=10.0)
         self.facing += 1
-        if abs(err) < 10.0 or self.facing > 20:
+        if facing or self.facing > 20:
             if not self.stop_dim:  # AudioGoal: not ended here, so not this one; try the next sighting
                 self.visited.append(self.target[0])
                 self.mode, self.facing, self.since_plan = "explore", 0, self.REPLAN
             return self._out([0.0, 0.0], stop=True)
-        rate = math.copysign(min(abs(math.radians(err)) / self.dt * 0.8, math.radians(self.robot.max_turn_deg)), err)
-        return self._out(_wheels(0.0, rate, self.robot))
+        return self._out(wheels)

@@ -565,7 +565,7 @@ def test_the_semantic_map_names_the_heard_category_and_marks_where_the_camera_sa
                 obs, _, term, trunc, info = env.step(oracle.act(obs, info))
                 if term or trunc:
                     break
-            assert info["metrics"]["success"] == 1.0 and m.heard > 0 and lit > 0
+            assert info["metrics"]["success"] == 1.0 and m.ears.heard > 0 and lit > 0
             img = m.observe(obs, info)
             assert CATEGORIES[m.category()] == cat  # named right once the sound has been heard out
             c = S // 2
