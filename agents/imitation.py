@@ -16,6 +16,10 @@ Then it scores SR / SPL (catch success / time in band on speaker following) on v
 from ``out/model.pt`` (weights, optimizer, random states, counters); the dataset is not saved (hundreds of MB)
 and refills from the next rollouts.
 
+With ``jobs`` J > 1 the collection and validation run in J spawned processes (:class:`Jobs`), each with its own env
+and a copy of the policy as it stands at that iteration; the fit stays here. With ``teacher`` "scripted" and no map
+the labels are sem-nav's (:class:`SemNavExpert`; AudioGoal and SemanticAudioNav).
+
 Observations are stored quantised to uint8 (depth over 0-10 m, spectrogram over 0-20): 10 KB a frame at 64 x 64.
 """
 from __future__ import annotations
@@ -117,6 +121,10 @@ class ImitationConfig:
     # learn where the person or the goal is from the oracle
     learner: str = "greedy"  # how the learner acts when DAgger lets it: its most likely action ("greedy"), or
     # "drawn" as it plays (drawn from its distribution, through the floor shield where it reads the floor plan)
+    jobs: int = 1  # spawned processes that collect and validate (each its own env, GL context and copy of the
+    # policy; the fit stays here). 1: all in this process. With J > 1 episode j of job k in iteration i draws from
+    # seed (seed, 11, i, k, j), so a run is the same for the same J; validation is the same for any J. (Spawned: a
+    # script calling train with jobs > 1 needs ``if __name__ == "__main__":``.)
     rollout_steps: int = 0  # a collection episode ends here (a stuck learner's 500 steps teach little); 0: the
     # task's own (200 on navigation, 600 on speaker following, whose episodes run 20-60 s to the catch at the end)
 
@@ -197,8 +205,42 @@ VAL_KEYS = {"SpeakerFollowing": {"sr": "catch_success", "band": "time_in_band"}}
 NAV_VAL = {"sr": "success", "spl": "spl"}
 
 
-def expert_for(task: str):
+class SemNavExpert(Expert):
+    """sem-nav's actions as the labels (``train --teacher scripted`` without ``--map`` on AudioGoal and
+    SemanticAudioNav): :class:`agents.semnav.SemNavAgent` acts on the robot's own sensors (seeded by the episode),
+    so its labels ask only for what the observations' history can tell: a turn on the spot to hear where the sound
+    is, then the frontier nearest that bearing. The goal heads still learn where the goal is from the oracle."""
+
+    def reset(self, env, obs, info) -> None:
+        import zlib
+
+        from agents.semnav import SemNavAgent
+
+        super().reset(env, obs, info)
+        self.teacher = SemNavAgent(np.random.default_rng(zlib.crc32(str(env.unwrapped.episode.episode_id).encode())))
+        self.teacher.reset(env, obs, info)
+
+    def label(self, obs, info) -> np.ndarray:
+        return np.asarray(self.teacher.act(obs, info), np.float32)
+
+
+#: the env sensors sem-nav acts on (SemNavExpert)
+SEMNAV_SENSORS = ("depth", "semantic", "spectrogram", "audio", "pose", "bump")
+
+
+def expert_for(task: str, cfg: "ImitationConfig | None" = None):
+    """The labels' source for ``task``: the oracle (the oracle follower on speaker following), or sem-nav where
+    ``cfg`` asks for the scripted teacher without a map (with a map the map's own scripted agent labels)."""
+    if cfg is not None and cfg.teacher == "scripted" and not cfg.egomap:
+        return SemNavExpert()
     return EXPERTS.get(task, Expert)()
+
+
+def collect_sensors(cfg: "ImitationConfig", model) -> tuple:
+    """The env sensors DAgger collects with: the policy's, and sem-nav's where it is the teacher."""
+    if cfg.teacher == "scripted" and not cfg.egomap:
+        return SEMNAV_SENSORS
+    return sensors_for(model)
 
 
 def _quantise(obs) -> tuple:
@@ -396,37 +438,144 @@ def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, ba
     return out
 
 
-def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0) -> dict:
+def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0, jobs=None) -> dict:
     """The policy alone over ``episodes`` of ``split`` homes, acting as the ``av-nav`` agent does (actions drawn
     from the discrete head with a Generator seeded per episode, through the floor shield where the policy reads the
     floor plan; the continuous head's mean): the means of the task's
     validation scores (``VAL_KEYS``: SR and SPL on navigation; on speaker following ``sr`` is the catch success and
-    ``band`` the time in band)."""
+    ``band`` the time in band). ``jobs``: a :class:`Jobs` that plays them in its processes (the same scores)."""
+    keys = VAL_KEYS.get(task, NAV_VAL)
+    if jobs is not None:
+        rows = jobs.evaluate(model, task, episodes, split, size, seed)
+    else:
+        from sonicverse_core.tasks import make_env
+
+        env = make_env(task, split=split, sensors=sensors_for(model), width=size, height=size)
+        try:
+            rows = eval_episodes(model, env, ego_for(model), keys, range(episodes), seed)
+        finally:
+            env.close()
+    return {k: float(np.mean([r[k] for r in rows])) for k in keys}
+
+
+def eval_episodes(model, env, ego, keys: dict, indices, seed: int) -> list[dict]:
+    """:func:`evaluate`'s episodes ``indices`` (each seeded by its index) in ``env``: a row of scores each."""
+    rows = []
+    for i in indices:
+        obs, info = env.reset(seed=int(np.random.SeedSequence([seed, 7, i]).generate_state(1)[0]))
+        h, start, done = model.initial_state(1), True, False
+        draw = np.random.default_rng([seed, 8, i])
+        if ego is not None:
+            ego.reset(env, obs, info)
+        while not done:
+            mp = ego.observe(obs, info) if ego is not None else None
+            a, h = _policy_step(model, obs, h, start, draw, mp, floor_shield(model, ego))
+            start = False
+            obs, _, term, trunc, info = env.step(a.astype(np.float32))
+            done = term or trunc
+        m = info.get("metrics", {})
+        rows.append({k: float(m.get(name, 0.0)) for k, name in keys.items()})
+    return rows
+
+
+class Jobs:
+    """DAgger's collection and validation in ``n`` spawned processes, each with its own envs (and GL context) and
+    a copy of the policy on the CPU, sent as it is at each call; the fit stays in the caller's process (and device).
+    Episode j of job k in iteration i draws from seed (cfg.seed, 11, i, k, j), whichever process plays it."""
+
+    def __init__(self, cfg: ImitationConfig, n: int):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        from sonicverse_core.tasks import worker_threads
+
+        self.n = n
+        self.ex = ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_job_init,
+                                      initargs=(asdict(cfg), worker_threads(n)))
+
+    @staticmethod
+    def _blob(model) -> bytes:
+        import copy
+        import io
+
+        buf = io.BytesIO()
+        torch.save(copy.deepcopy(model).to("cpu").eval(), buf)
+        return buf.getvalue()
+
+    def collect(self, model, beta: float, it: int, frames: int):
+        """Episodes of at least ``frames`` steps in all (each job ``ceil(frames / n)``), job by job."""
+        blob, share = self._blob(model), math.ceil(frames / self.n)
+        futs = [self.ex.submit(_job_collect, blob, beta, it, k, share) for k in range(self.n)]
+        for f in futs:
+            yield from f.result()
+
+    def evaluate(self, model, task: str, episodes: int, split: str, size: int, seed: int) -> list[dict]:
+        blob = self._blob(model)
+        futs = [self.ex.submit(_job_eval, blob, task, split, size, seed, list(range(k, episodes, self.n)))
+                for k in range(self.n)]
+        got = {}
+        for k, f in enumerate(futs):
+            got.update(zip(range(k, episodes, self.n), f.result()))
+        return [got[i] for i in range(episodes)]
+
+    def close(self, now: bool = False) -> None:
+        """Shut the processes down; ``now``: without waiting for the jobs still running (they are terminated)."""
+        if now:  # (ProcessPoolExecutor.terminate_workers from Python 3.14)
+            for proc in list((getattr(self.ex, "_processes", None) or {}).values()):
+                proc.terminate()
+        self.ex.shutdown(wait=True, cancel_futures=True)
+
+
+_JOB: dict = {}  # a job process's configuration and envs (by split)
+
+
+def _job_init(cfg: dict, threads: int) -> None:
+    from sonicverse_core.tasks import limit_threads
+
+    limit_threads(threads)
+    torch.set_num_threads(threads)
+    _JOB.update(cfg=ImitationConfig(**cfg), envs={})
+
+
+def _job_env(split: str, sensors: tuple):
     from sonicverse_core.tasks import make_env
 
-    keys = VAL_KEYS.get(task, NAV_VAL)
-    env = make_env(task, split=split, sensors=sensors_for(model), width=size, height=size)
-    ego = ego_for(model)
-    got = {k: [] for k in keys}
-    try:
-        for i in range(episodes):
-            obs, info = env.reset(seed=int(np.random.SeedSequence([seed, 7, i]).generate_state(1)[0]))
-            h, start, done = model.initial_state(1), True, False
-            draw = np.random.default_rng([seed, 8, i])
-            if ego is not None:
-                ego.reset(env, obs, info)
-            while not done:
-                mp = ego.observe(obs, info) if ego is not None else None
-                a, h = _policy_step(model, obs, h, start, draw, mp, floor_shield(model, ego))
-                start = False
-                obs, _, term, trunc, info = env.step(a.astype(np.float32))
-                done = term or trunc
-            m = info.get("metrics", {})
-            for k, name in keys.items():
-                got[k].append(float(m.get(name, 0.0)))
-    finally:
-        env.close()
-    return {k: float(np.mean(v)) for k, v in got.items()}
+    cfg = _JOB["cfg"]
+    key = (split, sensors)
+    if key not in _JOB["envs"]:
+        _JOB["envs"][key] = make_env(cfg.task, split=split, sensors=sensors, width=cfg.size, height=cfg.size,
+                                     homes=cfg.homes or None if split == "train" else None)
+    return _JOB["envs"][key]
+
+
+def _job_model(blob: bytes):
+    import io
+
+    return torch.load(io.BytesIO(blob), map_location="cpu", weights_only=False)
+
+
+def _job_collect(blob: bytes, beta: float, it: int, k: int, frames: int) -> list[dict]:
+    cfg = _JOB["cfg"]
+    model = _job_model(blob)
+    env = _job_env("train", collect_sensors(cfg, model))
+    expert, ego = expert_for(cfg.task, cfg), ego_for(model)
+    if ego is not None and cfg.teacher == "scripted":
+        ego.teach = True
+    cap = cfg.rollout_steps or ROLLOUT_STEPS.get(cfg.task, 200)
+    eps, n, j = [], 0, 0
+    while n < frames:
+        rng = np.random.default_rng([cfg.seed, 11, it, k, j])
+        ep = run_episode(model, env, expert, ego, cfg, rng, int(rng.integers(2**31)), beta, cap)
+        eps.append(ep)
+        n += len(ep["a"])
+        j += 1
+    return eps
+
+
+def _job_eval(blob: bytes, task: str, split: str, size: int, seed: int, indices: list) -> list[dict]:
+    model = _job_model(blob)
+    env = _job_env(split, sensors_for(model))
+    return eval_episodes(model, env, ego_for(model), VAL_KEYS.get(task, NAV_VAL), indices, seed)
 
 
 def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
@@ -447,6 +596,58 @@ def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
                            occupancy=cfg.occupancy if cfg.agent == "multitask" else 0))
 
 
+def run_episode(model, env, expert, ego, cfg: ImitationConfig, rng: np.random.Generator, seed: int, beta: float,
+                cap: int) -> dict:
+    """One DAgger collection episode from ``env.reset(seed=seed)``: the expert acts with probability ``beta``, else
+    the policy (its most likely action, or drawn with ``rng`` as ``cfg.learner`` says); every visited state is stored
+    with the expert's label (sem-nav's or the scripted follower's action with ``cfg.teacher`` "scripted"). Ends at
+    the episode's end or after ``cap`` steps. Returns the episode's lists (depth, spectrogram, pose, action, goal;
+    the map, SAVi's category and the occupancy where the model has them)."""
+    labels_c = getattr(model, "category", None) is not None  # SAVi's category targets
+    occ_v = getattr(model.cfg, "occupancy", 0)  # the multi-task model's occupancy targets
+    if occ_v:
+        from agents.savi import true_occupancy
+    obs, info = env.reset(seed=seed)
+    expert.reset(env, obs, info)
+    h, start, done = model.initial_state(1), True, False
+    ep = {"d": [], "s": [], "p": [], "a": [], "g": []}
+    if ego is not None:
+        ego.reset(env, obs, info)
+        ep["mp"] = []
+    if labels_c:
+        ep["c"] = []
+    if occ_v:
+        ep["o"] = []
+    while not done:
+        a_exp = expert.label(obs, info)
+        mp = ego.observe(obs, info) if ego is not None else None
+        if cfg.teacher == "scripted" and ego is not None:  # the map's own scripted agent (else SemNavExpert)
+            a_exp = np.asarray(ego.action, np.float32)
+        if cfg.learner == "drawn":
+            a_pol, h = _policy_step(model, obs, h, start, rng, mp, floor_shield(model, ego))
+        else:
+            a_pol, h = _policy_step(model, obs, h, start, egomap=mp)
+        if mp is not None:
+            ep["mp"].append(mp.copy())
+        d, s, p = _quantise(obs)
+        ep["d"].append(d)
+        ep["s"].append(s)
+        ep["p"].append(p)
+        ep["a"].append(a_exp.astype(np.float32))
+        ep["g"].append(expert.goal())
+        if labels_c:
+            ep["c"].append(np.int64(expert.category()))
+        if occ_v:
+            ep["o"].append(true_occupancy(env.unwrapped.privileged()["world"], occ_v))
+        start = False
+        act = a_exp if rng.random() < beta else a_pol
+        if len(act) == 3 and act[2] > 0 and a_exp[2] <= 0:  # the policy's stop where the expert
+            act = a_exp  # drives on would end the episode short of the goal: the expert drives on
+        obs, _, term, trunc, info = env.step(np.asarray(act, np.float32))
+        done = term or trunc or len(ep["a"]) >= cap
+    return ep
+
+
 def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
           base: ImitationConfig | None = None) -> dict:
     """Run DAgger for ``cfg.frames`` frames; checkpoints ``out/model.pt`` (every iteration, with the training state),
@@ -458,8 +659,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
     from sonicverse_core.errors import ConfigError
     from sonicverse_core.tasks import make_env
 
-    if cfg.frames < 1 or cfg.iterations < 1:
-        raise ConfigError("--frames and --iterations must be >= 1")
+    if cfg.frames < 1 or cfg.iterations < 1 or cfg.jobs < 1:
+        raise ConfigError("--frames, --iterations and --jobs must be >= 1")
     if cfg.head not in ("discrete", "continuous"):
         raise ConfigError(f"head must be discrete or continuous, got {cfg.head!r}")
     if cfg.agent not in ("av-nav", "savi", "multitask"):
@@ -470,9 +671,11 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
         raise ConfigError(f"learner must be greedy or drawn, got {cfg.learner!r}")
     if cfg.teacher not in ("oracle", "scripted"):
         raise ConfigError(f"teacher must be oracle or scripted, got {cfg.teacher!r}")
-    if cfg.teacher == "scripted" and not (cfg.egomap and MAP_TASKS.get(cfg.task) in ("follow", "sem")):
+    if cfg.teacher == "scripted" and not (MAP_TASKS.get(cfg.task) in ("follow", "sem") if cfg.egomap
+                                          else cfg.task in ("AudioGoal", "SemanticAudioNav")):
         raise ConfigError("--teacher scripted is for --map on SpeakerFollowing (the scripted follower draws the map) "
-                          "or SemanticAudioNav (sem-nav acts on what the semantic map shows)")
+                          "or SemanticAudioNav (sem-nav acts on what the semantic map shows), or without --map on "
+                          "AudioGoal and SemanticAudioNav (sem-nav acts on the robot's own sensors)")
     resolve_device(cfg.device)  # an unknown or absent device fails before anything is written
     out = Path(out)
     ck_path = out / "model.pt"
@@ -503,7 +706,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    sensors = MAP_KIND_SENSORS[MAP_TASKS[cfg.task]] if cfg.egomap else SENSORS
+    sensors = (MAP_KIND_SENSORS[MAP_TASKS[cfg.task]] if cfg.egomap
+               else SEMNAV_SENSORS if cfg.teacher == "scripted" else SENSORS)
     env = make_env(cfg.task, split="train", sensors=sensors, width=cfg.size,
                    height=cfg.size, homes=cfg.homes or None)
     spec = env.observation_space["spectrogram"].shape
@@ -517,21 +721,18 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
     data = Dataset(cfg.dataset_frames)
-    expert = expert_for(cfg.task)
+    expert = expert_for(cfg.task, cfg)
     ego = ego_for(model)
     if ego is not None and cfg.teacher == "scripted":
         ego.teach = True  # the map's own scripted agent acts (its action, ego.action, is the label)
     cap = cfg.rollout_steps or ROLLOUT_STEPS.get(cfg.task, 200)
-    labels_c = getattr(model, "category", None) is not None  # SAVi's category targets
-    occ_v = getattr(model.cfg, "occupancy", 0)  # the multi-task model's occupancy targets
-    if occ_v:
-        from agents.savi import true_occupancy
     val_keys = VAL_KEYS.get(cfg.task, NAV_VAL)
     per_iter = math.ceil(cfg.frames / cfg.iterations)
     log_path = out / "log.csv"
     for i, r in enumerate(rows):  # resumed: the log as far as the checkpoint (a kill may have left a later line)
         append_row(log_path, r, first=i == 0)
     t0 = time.perf_counter() - (rows[-1]["wall_s"] if rows else 0.0)
+    pool, finished = Jobs(cfg, cfg.jobs) if cfg.jobs > 1 else None, False
     try:
         for it in range(start_it, cfg.iterations):
             if hasattr(model, "stage"):  # SAVi's two stages
@@ -539,46 +740,13 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
             beta = max(cfg.beta_min, cfg.beta0 * (1 - it / max(cfg.iterations / 2, 1)))
             t_roll = time.perf_counter()
             n = 0
-            while n < per_iter:
-                obs, info = env.reset(seed=int(rng.integers(2**31)))
-                expert.reset(env, obs, info)
-                h, start, done = model.initial_state(1), True, False
-                ep = {"d": [], "s": [], "p": [], "a": [], "g": []}
-                if ego is not None:
-                    ego.reset(env, obs, info)
-                    ep["mp"] = []
-                if labels_c:
-                    ep["c"] = []
-                if occ_v:
-                    ep["o"] = []
-                while not done:
-                    a_exp = expert.label(obs, info)
-                    mp = ego.observe(obs, info) if ego is not None else None
-                    if cfg.teacher == "scripted":
-                        a_exp = np.asarray(ego.action, np.float32)
-                    if cfg.learner == "drawn":
-                        a_pol, h = _policy_step(model, obs, h, start, rng, mp, floor_shield(model, ego))
-                    else:
-                        a_pol, h = _policy_step(model, obs, h, start, egomap=mp)
-                    if mp is not None:
-                        ep["mp"].append(mp.copy())
-                    d, s, p = _quantise(obs)
-                    ep["d"].append(d)
-                    ep["s"].append(s)
-                    ep["p"].append(p)
-                    ep["a"].append(a_exp.astype(np.float32))
-                    ep["g"].append(expert.goal())
-                    if labels_c:
-                        ep["c"].append(np.int64(expert.category()))
-                    if occ_v:
-                        ep["o"].append(true_occupancy(env.unwrapped.privileged()["world"], occ_v))
-                    start = False
-                    act = a_exp if rng.random() < beta else a_pol
-                    if len(act) == 3 and act[2] > 0 and a_exp[2] <= 0:  # the policy's stop where the expert
-                        act = a_exp  # drives on would end the episode short of the goal: the expert drives on
-                    obs, _, term, trunc, info = env.step(np.asarray(act, np.float32))
-                    n += 1
-                    done = term or trunc or len(ep["a"]) >= cap
+            if pool is not None:  # the jobs collect episodes with this iteration's policy, each its share
+                for ep in pool.collect(model, beta, it, per_iter):
+                    data.add(ep)
+                    n += len(ep["a"])
+            while pool is None and n < per_iter:
+                ep = run_episode(model, env, expert, ego, cfg, rng, int(rng.integers(2**31)), beta, cap)
+                n += len(ep["a"])
                 data.add(ep)
             roll_s = time.perf_counter() - t_roll
             frames += n
@@ -598,7 +766,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
                 pre = pretrain_goal(model, data, rng, cfg.goal_steps)
             model.eval()
             fit_s = time.perf_counter() - t_fit
-            val = evaluate(model, cfg.task, cfg.val_episodes, "val", cfg.size, cfg.seed) if cfg.val_episodes else {}
+            val = (evaluate(model, cfg.task, cfg.val_episodes, "val", cfg.size, cfg.seed, pool) if cfg.val_episodes
+                   else {})
             row = {"iteration": it, "frames": frames, "beta": round(beta, 3),
                    "loss": round(float(np.mean([q["policy"] for q in parts])), 5),
                    "goal_loss": round(float(np.mean([q.get("goal", np.nan) for q in parts])), 5),
@@ -624,6 +793,9 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
                 "frames": frames, "best": best, "iteration": it})
             if progress is not None:
                 progress(row)
+        finished = True
     finally:
         env.close()
+        if pool is not None:
+            pool.close(now=not finished)  # an error or an interruption: the other jobs stop at once
     return {"out": str(out), "checkpoint": str(ck_path), "best": str(out / "best.pt"), "log": rows}

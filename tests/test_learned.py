@@ -92,6 +92,48 @@ def test_a_short_dagger_run_checkpoints_logs_and_plays_through_the_harness(tmp_p
     assert out["episodes"] == 1 and out["steps_per_episode"] <= 40
 
 
+def test_dagger_collects_and_validates_in_jobs_and_scores_as_it_would_alone(tmp_path, capsys):
+    """``--jobs 2``: two spawned processes collect the episodes (each its share, with the iteration's policy) and
+    play the validation episodes, which score exactly as in this process."""
+    from agents.imitation import evaluate
+    from app.cli import main
+
+    cfg = ImitationConfig(frames=100, iterations=1, val_episodes=2, epochs=1, seed=3, rollout_steps=30, jobs=2)
+    res = train(cfg, tmp_path / "run")
+    row = res["log"][-1]
+    assert row["frames"] >= 100 and row["dataset_frames"] == row["frames"]
+    model, meta = load(tmp_path / "run" / "model.pt")
+    assert meta["config"]["jobs"] == 2
+    assert evaluate(model, "AudioGoal", 2, "val", 64, 3) == {"sr": row["val_sr"], "spl": row["val_spl"]}
+    from concurrent.futures.process import BrokenProcessPool
+
+    from agents.imitation import Jobs, _job_collect
+
+    jobs = Jobs(cfg, 2)  # an error elsewhere stops the jobs at once: a long collection does not run to its end
+    f = jobs.ex.submit(_job_collect, jobs._blob(model), 1.0, 0, 0, 10**6)
+    jobs.close(now=True)
+    assert f.cancelled() or isinstance(f.exception(), BrokenProcessPool)
+    assert main(["train", "--recipe", "ppo", "--jobs", "2", "--out", str(tmp_path / "ppo")]) == 2
+    assert "--jobs and --dataset-frames belong to --recipe dagger" in capsys.readouterr().err
+
+
+def test_sem_nav_teaches_a_policy_without_a_map(tmp_path, monkeypatch):
+    """``--teacher scripted`` without ``--map`` on AudioGoal: the labels are sem-nav's, acting on the robot's own
+    sensors. Its first steps turn on the spot to hear where the sound is (the oracle would drive off at once), and
+    the goal heads still learn from the oracle."""
+    import agents.imitation as im
+
+    eps, add = [], im.Dataset.add
+    monkeypatch.setattr(im.Dataset, "add", lambda self, ep: (eps.append(ep), add(self, ep))[1])
+    train(ImitationConfig(task="AudioGoal", teacher="scripted", frames=30, iterations=1, val_episodes=0, epochs=1,
+                          seed=3, beta0=1.0, beta_min=1.0, rollout_steps=30), tmp_path / "t")
+    a, g = np.stack(eps[0]["a"]), np.stack(eps[0]["g"])
+    spin = np.isclose(a[:, 0], -a[:, 1]) & (np.abs(a[:, 0]) > 0.1)
+    lead = int(np.argmin(spin)) if not spin.all() else len(spin)
+    assert len(a) == 30 and lead >= 15 and np.all(a[lead:].sum(1) > 0), a  # a turn, then it drives
+    assert np.all(np.abs(np.hypot(g[:, 0], g[:, 1]) - 1) < 1e-5) and np.all(g[:, 2] > 0)  # the oracle's goal
+
+
 def test_dagger_never_lets_the_policy_stop_short_of_the_goal(tmp_path, monkeypatch):
     """SemanticAudioNav: a policy that always stops would end every collection episode at its first step, and the
     data would never reach the goal's stop label; the expert drives on instead, and the episode runs on."""

@@ -50,9 +50,10 @@ def cmd_train(a) -> int:
         from sonicverse_core.errors import ConfigError
 
         raise ConfigError("--temperature is an ensemble's acting setting: give it with --ensemble")
-    if a.teacher != "oracle" and not (a.map and a.recipe == "dagger"
-                                      and a.task in ("SpeakerFollowing", "SemanticAudioNav")):
-        raise ConfigError("--teacher scripted is for --recipe dagger --map --task SpeakerFollowing|SemanticAudioNav")
+    if a.teacher != "oracle" and not (a.recipe == "dagger" and a.agent == "av-nav" and a.task in (
+            ("SpeakerFollowing", "SemanticAudioNav") if a.map else ("AudioGoal", "SemanticAudioNav"))):
+        raise ConfigError("--teacher scripted is for --recipe dagger --agent av-nav: with --map on "
+                          "SpeakerFollowing|SemanticAudioNav, without on AudioGoal|SemanticAudioNav (sem-nav)")
     if a.learner != "greedy" and a.recipe != "dagger":
         raise ConfigError("--learner is for --recipe dagger (PPO's learner always draws its actions)")
     if a.map and (a.recipe != "dagger" or a.agent != "av-nav"
@@ -61,6 +62,8 @@ def cmd_train(a) -> int:
                           "SemanticAudioNav")
     if a.resume and a.recipe == "ppo":
         raise ConfigError("--resume is for --recipe dagger (a PPO run starts from --init)")
+    if a.recipe == "ppo" and (a.jobs > 1 or a.dataset_frames != 60_000):
+        raise ConfigError("--jobs and --dataset-frames belong to --recipe dagger (PPO: --envs and --nproc)")
     if a.recipe != "ppo" and (a.nproc > 1 or a.init):
         raise ConfigError("--nproc and --init belong to --recipe ppo (DD-PPO fine-tuning)")
     if a.recipe != "ppo" and (a.val_every != 20 or a.critic_warmup != 10 or a.lr is not None):
@@ -89,8 +92,9 @@ def cmd_train(a) -> int:
     if a.agent == "sound-localizer":  # the gan baseline's localiser (supervised, not a policy)
         from agents.localizer import LocalizerTrainConfig, train as train_localizer
 
-        if a.recipe != "dagger" or a.resume or a.homes:
-            raise ConfigError("the sound localiser is trained by supervision: no --recipe ppo, --resume or --homes")
+        if a.recipe != "dagger" or a.resume or a.homes or a.jobs > 1 or a.dataset_frames != 60_000:
+            raise ConfigError("the sound localiser is trained by supervision: no --recipe ppo, --resume, --homes, "
+                              "--jobs or --dataset-frames")
         if a.task == "SpeakerFollowing":
             raise ConfigError("the sound localiser learns sounding objects' places: --task AudioGoal or "
                               "SemanticAudioNav")
@@ -126,7 +130,8 @@ def _imitation_config(a):
     return ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
                            size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
                            aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
-                           homes=a.homes or 0, egomap=a.map, teacher=a.teacher, learner=a.learner)
+                           homes=a.homes or 0, egomap=a.map, teacher=a.teacher, learner=a.learner, jobs=a.jobs,
+                           dataset_frames=a.dataset_frames)
 
 
 def cmd_bench_env(a) -> int:
@@ -424,6 +429,13 @@ def add_task_commands(sub, bench_sub) -> None:
                    help="weight of the goal-prediction loss, 0 for none (default: %(default)s)")
     t.add_argument("--epochs", type=A.count(1, 1000), default=None, help="passes over the dataset per iteration "
                    "(default: 4; the sound localiser: 12 in all)")
+    t.add_argument("--jobs", type=A.count(1, 256), default=1,
+                   help="imitation: collect and validate in J spawned processes (each its own env and a copy of "
+                   "the policy; the fit stays in the main process, on --device); a run is reproducible for the "
+                   "same J (default: %(default)s)")
+    t.add_argument("--dataset-frames", type=A.count(100, 10**8), default=60_000,
+                   help="imitation: the dataset keeps the latest N frames (about 10 KB each at --size 64; "
+                   "default: %(default)s)")
     t.add_argument("--seq", type=A.count(2, 10_000), default=48, help="imitation: steps per training sequence "
                    "(default: %(default)s)")
     t.add_argument("--homes", type=A.count(1, 5000), default=None,
@@ -436,7 +448,8 @@ def add_task_commands(sub, bench_sub) -> None:
     t.add_argument("--teacher", choices=("oracle", "scripted"), default="oracle",
                    help="imitation: whose actions the policy learns, the privileged oracle's or (--map on "
                    "SpeakerFollowing) the scripted follower's or (--map on SemanticAudioNav) sem-nav's, which see "
-                   "what the map shows (default: %(default)s)")
+                   "what the map shows, or (AudioGoal, SemanticAudioNav without --map) sem-nav's, which act on the "
+                   "robot's own sensors (default: %(default)s)")
     t.add_argument("--learner", choices=("greedy", "drawn"), default="greedy",
                    help="imitation: how the learner acts when DAgger lets it, its most likely action or drawn as it "
                    "plays (through the floor shield where it reads the floor plan) (default: %(default)s)")

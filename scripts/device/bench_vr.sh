@@ -16,25 +16,14 @@
 # where real time is refused, e.g. callback,server or none); one JSON line per run in
 # $OUT/bench_vr.jsonl (audio:N runs `bench audio --sources N` into $OUT/bench_audio.jsonl).
 cd "$(dirname "$0")/../.."
-# It unpacks packages into / and writes /etc/ld.so.conf.d, so it runs only when asked for by name on a lent
-# machine: SV_LENT_MACHINE=1 scripts/device/NAME.sh ... (the device tool sets $OUT there, where results go).
-[ "${SV_LENT_MACHINE:-}" = 1 ] && [ -n "${OUT:-}" ] || {
-  echo "$0: for a lent device machine only: run it there as SV_LENT_MACHINE=1 $0 (with \$OUT set)" >&2; exit 2; }
-for d in .whl .jack .gl .svcache; do [ -d "$d" ] || { echo "$0: $d/ is missing beside the repository root (see the header)" >&2; exit 2; }; done
+. scripts/device/lent.sh .jack .svcache  # (it unpacks packages into /: for a lent machine only)
 SECS=${1:-60}; shift || true
 RUNS=${*:-"orientation-training:simulated speaker-following:scripted speaker-following:scripted voice-retrieval:scripted"}
-for f in .gl/*.deb; do dpkg -x "$f" /; done
 mkdir -p /opt/jk && for f in .jack/*.deb; do dpkg -x "$f" /opt/jk; done
 printf "/opt/jk/usr/lib/x86_64-linux-gnu\n/opt/jk/lib/x86_64-linux-gnu\n" > /etc/ld.so.conf.d/zz-sonicverse-jack.conf
 ldconfig
 export PATH=/opt/jk/usr/bin:$PATH JACK_DRIVER_DIR=/opt/jk/usr/lib/x86_64-linux-gnu/jack
 export ALSA_CONFIG_PATH=/opt/jk/usr/share/alsa/alsa.conf
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-  || exit 3
-sed -i "s/np.infty/np.inf/g" /tmp/site/pyrender/*.py
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYOPENGL_PLATFORM=egl PYGLET_HEADLESS=1 SONICVERSE_CACHE=$PWD/.svcache
-export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
-[ -f "$__EGL_VENDOR_LIBRARY_FILENAMES" ] || unset __EGL_VENDOR_LIBRARY_FILENAMES
 nproc; uname -r; cat /proc/self/cgroup; cat /sys/fs/cgroup/cpu.max 2>/dev/null; cat /proc/pressure/cpu 2>/dev/null
 cat /sys/kernel/mm/transparent_hugepage/enabled 2>/dev/null; cat /sys/devices/system/cpu/cpu0/cpufreq/scaling_governor 2>/dev/null
 grep -m1 "model name" /proc/cpuinfo; grep -o -w -E "avx2|avx512f|fma" /proc/cpuinfo | sort -u | xargs

@@ -5,17 +5,7 @@
 # Checks: DD-PPO frames/s against processes (CPU gloo; CUDA on one shared GPU), the GPU tests,
 # bench train's av-nav rows.
 cd "$(dirname "$0")/../.."
-# It unpacks packages into / and writes /etc/ld.so.conf.d, so it runs only when asked for by name on a lent
-# machine: SV_LENT_MACHINE=1 scripts/device/NAME.sh ... (the device tool sets $OUT there, where results go).
-[ "${SV_LENT_MACHINE:-}" = 1 ] && [ -n "${OUT:-}" ] || {
-  echo "$0: for a lent device machine only: run it there as SV_LENT_MACHINE=1 $0 (with \$OUT set)" >&2; exit 2; }
-for d in .whl .gl .svcache; do [ -d "$d" ] || { echo "$0: $d/ is missing beside the repository root (see the header)" >&2; exit 2; }; done
-for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
-sed -i "s/np.infty/np.inf/g" /tmp/site/pyrender/*.py
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 PYOPENGL_PLATFORM=egl PYGLET_HEADLESS=1 SONICVERSE_CACHE=$PWD/.svcache
-export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
-[ -f "$__EGL_VENDOR_LIBRARY_FILENAMES" ] || unset __EGL_VENDOR_LIBRARY_FILENAMES
+. scripts/device/lent.sh .svcache  # (it unpacks packages into /: for a lent machine only)
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader; nproc
 python3 -c "import sys, torch; print(sys.version.split()[0], torch.__version__, torch.version.cuda, torch.cuda.get_device_name(0))"
 summ() {  # K device wall -> one JSON line from the run's log.csv
