@@ -236,11 +236,21 @@ def expert_for(task: str, cfg: "ImitationConfig | None" = None):
     return EXPERTS.get(task, Expert)()
 
 
-def collect_sensors(cfg: "ImitationConfig", model) -> tuple:
-    """The env sensors DAgger collects with: the policy's, and sem-nav's where it is the teacher."""
-    if cfg.teacher == "scripted" and not cfg.egomap:
-        return SEMNAV_SENSORS
-    return sensors_for(model)
+def collect_sensors(cfg: "ImitationConfig") -> tuple:
+    """The env sensors DAgger collects with: the policy's (a map policy's include what its map reads), and sem-nav's
+    where it is the teacher without a map."""
+    if cfg.egomap:
+        return MAP_KIND_SENSORS[MAP_TASKS[cfg.task]]
+    return SEMNAV_SENSORS if cfg.teacher == "scripted" else SENSORS
+
+
+def labellers(cfg: "ImitationConfig", model) -> tuple:
+    """(expert, map) for collecting with ``model``: the labels' source (:func:`expert_for`) and the policy's map
+    (None without one), whose own scripted agent labels where ``cfg.teacher`` is "scripted"."""
+    ego = ego_for(model)
+    if ego is not None and cfg.teacher == "scripted":
+        ego.teach = True  # the map's own scripted agent acts (its action, ego.action, is the label)
+    return expert_for(cfg.task, cfg), ego
 
 
 def _quantise(obs) -> tuple:
@@ -557,10 +567,8 @@ def _job_model(blob: bytes):
 def _job_collect(blob: bytes, beta: float, it: int, k: int, frames: int) -> list[dict]:
     cfg = _JOB["cfg"]
     model = _job_model(blob)
-    env = _job_env("train", collect_sensors(cfg, model))
-    expert, ego = expert_for(cfg.task, cfg), ego_for(model)
-    if ego is not None and cfg.teacher == "scripted":
-        ego.teach = True
+    env = _job_env("train", collect_sensors(cfg))
+    expert, ego = labellers(cfg, model)
     cap = cfg.rollout_steps or ROLLOUT_STEPS.get(cfg.task, 200)
     eps, n, j = [], 0, 0
     while n < frames:
@@ -706,9 +714,7 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    sensors = (MAP_KIND_SENSORS[MAP_TASKS[cfg.task]] if cfg.egomap
-               else SEMNAV_SENSORS if cfg.teacher == "scripted" else SENSORS)
-    env = make_env(cfg.task, split="train", sensors=sensors, width=cfg.size,
+    env = make_env(cfg.task, split="train", sensors=collect_sensors(cfg), width=cfg.size,
                    height=cfg.size, homes=cfg.homes or None)
     spec = env.observation_space["spectrogram"].shape
     adim = env.action_space.shape[0]
@@ -721,10 +727,7 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
     data = Dataset(cfg.dataset_frames)
-    expert = expert_for(cfg.task, cfg)
-    ego = ego_for(model)
-    if ego is not None and cfg.teacher == "scripted":
-        ego.teach = True  # the map's own scripted agent acts (its action, ego.action, is the label)
+    expert, ego = labellers(cfg, model)
     cap = cfg.rollout_steps or ROLLOUT_STEPS.get(cfg.task, 200)
     val_keys = VAL_KEYS.get(cfg.task, NAV_VAL)
     per_iter = math.ceil(cfg.frames / cfg.iterations)
