@@ -12,13 +12,13 @@ stop label instead of ending short of it), adds them to a
 bounded dataset of episode sequences, and fits the policy to the labels (cross-entropy over the discrete head's
 primitives, or mean squared error of the continuous head's mean; truncated back-propagation through time over ``seq``
 steps), with the auxiliary goal-prediction loss (``aux_weight``) on where the goal (the person) is from the robot.
-Then it scores SR / SPL (catch success / time in band on speaker following) on validation homes with the policy alone and saves a checkpoint and a CSV log line. ``resume`` goes on
-from ``out/model.pt`` (weights, optimizer, random states, counters); the dataset is not saved (hundreds of MB)
-and refills from the next rollouts.
+Then it scores SR / SPL (catch success / time in band on speaker following) on validation homes with the policy
+alone and saves a checkpoint and a CSV log line. ``resume`` goes on from ``out/model.pt`` (weights, optimizer,
+random states, counters); the dataset is not saved (hundreds of MB) and refills from the next rollouts.
 
-With ``jobs`` J > 1 the collection and validation run in J spawned processes (:class:`Jobs`), each with its own env
-and a copy of the policy as it stands at that iteration; the fit stays here. With ``teacher`` "scripted" and no map
-the labels are sem-nav's (:class:`SemNavExpert`; AudioGoal and SemanticAudioNav).
+With ``jobs`` J > 1 the collection and validation run in J spawned processes (:class:`agents.dagger_jobs.Jobs`),
+each with its own env and a copy of the policy as it stands at that iteration; the fit stays here. With ``teacher``
+"scripted" and no map the labels are sem-nav's (:class:`SemNavExpert`; AudioGoal and SemanticAudioNav).
 
 Observations are stored quantised to uint8 (depth over 0-10 m, spectrogram over 0-20): 10 KB a frame at 64 x 64.
 """
@@ -453,7 +453,8 @@ def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int =
     from the discrete head with a Generator seeded per episode, through the floor shield where the policy reads the
     floor plan; the continuous head's mean): the means of the task's
     validation scores (``VAL_KEYS``: SR and SPL on navigation; on speaker following ``sr`` is the catch success and
-    ``band`` the time in band). ``jobs``: a :class:`Jobs` that plays them in its processes (the same scores)."""
+    ``band`` the time in band). ``jobs``: a :class:`agents.dagger_jobs.Jobs` that plays them in its processes (the
+    same scores)."""
     keys = VAL_KEYS.get(task, NAV_VAL)
     if jobs is not None:
         rows = jobs.evaluate(model, task, episodes, split, size, seed)
@@ -486,104 +487,6 @@ def eval_episodes(model, env, ego, keys: dict, indices, seed: int) -> list[dict]
         m = info.get("metrics", {})
         rows.append({k: float(m.get(name, 0.0)) for k, name in keys.items()})
     return rows
-
-
-class Jobs:
-    """DAgger's collection and validation in ``n`` spawned processes, each with its own envs (and GL context) and
-    a copy of the policy on the CPU, sent as it is at each call; the fit stays in the caller's process (and device).
-    Episode j of job k in iteration i draws from seed (cfg.seed, 11, i, k, j), whichever process plays it."""
-
-    def __init__(self, cfg: ImitationConfig, n: int):
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
-        from sonicverse_core.tasks import worker_threads
-
-        self.n = n
-        self.ex = ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=_job_init,
-                                      initargs=(asdict(cfg), worker_threads(n)))
-
-    @staticmethod
-    def _blob(model) -> bytes:
-        import copy
-        import io
-
-        buf = io.BytesIO()
-        torch.save(copy.deepcopy(model).to("cpu").eval(), buf)
-        return buf.getvalue()
-
-    def collect(self, model, beta: float, it: int, frames: int):
-        """Episodes of at least ``frames`` steps in all (each job ``ceil(frames / n)``), job by job."""
-        blob, share = self._blob(model), math.ceil(frames / self.n)
-        futs = [self.ex.submit(_job_collect, blob, beta, it, k, share) for k in range(self.n)]
-        for f in futs:
-            yield from f.result()
-
-    def evaluate(self, model, task: str, episodes: int, split: str, size: int, seed: int) -> list[dict]:
-        blob = self._blob(model)
-        futs = [self.ex.submit(_job_eval, blob, task, split, size, seed, list(range(k, episodes, self.n)))
-                for k in range(self.n)]
-        got = {}
-        for k, f in enumerate(futs):
-            got.update(zip(range(k, episodes, self.n), f.result()))
-        return [got[i] for i in range(episodes)]
-
-    def close(self, now: bool = False) -> None:
-        """Shut the processes down; ``now``: without waiting for the jobs still running (they are terminated)."""
-        if now:  # (ProcessPoolExecutor.terminate_workers from Python 3.14)
-            for proc in list((getattr(self.ex, "_processes", None) or {}).values()):
-                proc.terminate()
-        self.ex.shutdown(wait=True, cancel_futures=True)
-
-
-_JOB: dict = {}  # a job process's configuration and envs (by split)
-
-
-def _job_init(cfg: dict, threads: int) -> None:
-    from sonicverse_core.tasks import limit_threads
-
-    limit_threads(threads)
-    torch.set_num_threads(threads)
-    _JOB.update(cfg=ImitationConfig(**cfg), envs={})
-
-
-def _job_env(split: str, sensors: tuple):
-    from sonicverse_core.tasks import make_env
-
-    cfg = _JOB["cfg"]
-    key = (split, sensors)
-    if key not in _JOB["envs"]:
-        _JOB["envs"][key] = make_env(cfg.task, split=split, sensors=sensors, width=cfg.size, height=cfg.size,
-                                     homes=cfg.homes or None if split == "train" else None)
-    return _JOB["envs"][key]
-
-
-def _job_model(blob: bytes):
-    import io
-
-    return torch.load(io.BytesIO(blob), map_location="cpu", weights_only=False)
-
-
-def _job_collect(blob: bytes, beta: float, it: int, k: int, frames: int) -> list[dict]:
-    cfg = _JOB["cfg"]
-    model = _job_model(blob)
-    env = _job_env("train", collect_sensors(cfg))
-    expert, ego = labellers(cfg, model)
-    cap = cfg.rollout_steps or ROLLOUT_STEPS.get(cfg.task, 200)
-    eps, n, j = [], 0, 0
-    while n < frames:
-        rng = np.random.default_rng([cfg.seed, 11, it, k, j])
-        ep = run_episode(model, env, expert, ego, cfg, rng, int(rng.integers(2**31)), beta, cap)
-        eps.append(ep)
-        n += len(ep["a"])
-        j += 1
-    return eps
-
-
-def _job_eval(blob: bytes, task: str, split: str, size: int, seed: int, indices: list) -> list[dict]:
-    model = _job_model(blob)
-    env = _job_env(split, sensors_for(model))
-    return eval_episodes(model, env, ego_for(model), VAL_KEYS.get(task, NAV_VAL), indices, seed)
 
 
 def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
@@ -735,6 +638,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
     for i, r in enumerate(rows):  # resumed: the log as far as the checkpoint (a kill may have left a later line)
         append_row(log_path, r, first=i == 0)
     t0 = time.perf_counter() - (rows[-1]["wall_s"] if rows else 0.0)
+    if cfg.jobs > 1:
+        from agents.dagger_jobs import Jobs
     pool, finished = Jobs(cfg, cfg.jobs) if cfg.jobs > 1 else None, False
     try:
         for it in range(start_it, cfg.iterations):

@@ -107,7 +107,7 @@ def test_dagger_collects_and_validates_in_jobs_and_scores_as_it_would_alone(tmp_
     assert evaluate(model, "AudioGoal", 2, "val", 64, 3) == {"sr": row["val_sr"], "spl": row["val_spl"]}
     from concurrent.futures.process import BrokenProcessPool
 
-    from agents.imitation import Jobs, _job_collect
+    from agents.dagger_jobs import Jobs, _job_collect
 
     jobs = Jobs(cfg, 2)  # an error elsewhere stops the jobs at once: a long collection does not run to its end
     f = jobs.ex.submit(_job_collect, jobs._blob(model), 1.0, 0, 0, 10**6)
