@@ -65,8 +65,9 @@ _JOB: dict = {}  # a job process's configuration and envs (by split)
 
 
 def _job_init(cfg: dict, threads: int) -> None:
-    from sonicverse_core.tasks import limit_threads
+    from sonicverse_core.tasks import exit_with_parent, limit_threads
 
+    exit_with_parent()
     limit_threads(threads)
     torch.set_num_threads(threads)
     _JOB.update(cfg=ImitationConfig(**cfg), envs={})

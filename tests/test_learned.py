@@ -117,6 +117,43 @@ def test_dagger_collects_and_validates_in_jobs_and_scores_as_it_would_alone(tmp_
     assert "--jobs and --dataset-frames belong to --recipe dagger" in capsys.readouterr().err
 
 
+def test_a_spawned_worker_ends_when_its_parent_is_killed(tmp_path):
+    """DAgger's and the evaluation's jobs call ``exit_with_parent``: a parent killed with -9 leaves no orphan."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import multiprocessing as mp, sys, time\n"
+        "from sonicverse_core.tasks import exit_with_parent\n"
+        "def child():\n    exit_with_parent(0.05)\n    time.sleep(600)\n"
+        "if __name__ == '__main__':\n"
+        "    p = mp.get_context('spawn').Process(target=child); p.start()\n"
+        "    print(p.pid, flush=True); time.sleep(600)\n")
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.getcwd()})
+    pid = int(parent.stdout.readline())
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.wait()
+    import time
+
+    def alive() -> bool:  # a zombie (exited, not yet reaped by whoever adopted it) counts as gone
+        try:
+            return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+
+    for _ in range(3000):  # the orphan notices its parent is gone and exits (a bounded wait; no timing asserted)
+        if not alive():
+            break
+        time.sleep(0.01)
+    else:
+        os.kill(pid, signal.SIGKILL)
+        raise AssertionError("the spawned worker outlived its killed parent")
+
+
 def test_sem_nav_teaches_a_policy_without_a_map(tmp_path, monkeypatch):
     """``--teacher scripted`` without ``--map`` on AudioGoal: the labels are sem-nav's, acting on the robot's own
     sensors. Its first steps turn on the spot to hear where the sound is (the oracle would drive off at once), and

@@ -250,8 +250,9 @@ def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint
 def _job(queue, j: int, threads: int, indices, play, args) -> None:
     """One job of :func:`_play_in_jobs` (a spawned process): its rows go back one by one, then ("done", j), or
     ("error", j, error class name, message)."""
-    from sonicverse_core.tasks import limit_threads
+    from sonicverse_core.tasks import exit_with_parent, limit_threads
 
+    exit_with_parent()
     limit_threads(threads)
     try:
         import torch

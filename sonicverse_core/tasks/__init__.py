@@ -72,6 +72,27 @@ def worker_threads(num_envs: int) -> int:
     return max(1, cores() // max(num_envs, 1))
 
 
+def exit_with_parent(period_s: float = 0.5) -> None:
+    """A spawned worker ends itself when the process that started it is gone (killed with -9, say): a daemon thread
+    watches the parent's pid, so no orphan goes on rendering or waits for work forever."""
+    import multiprocessing
+    import os
+    import threading
+    import time
+
+    # the pid multiprocessing was started from, not getppid() now: the parent may already be gone by the time
+    # the worker gets here (it would then watch its adopter)
+    known = multiprocessing.parent_process()
+    parent = known.pid if known is not None else os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(period_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def limit_threads(n: int) -> None:
     """A worker process's software rasteriser (Mesa llvmpipe) and math libraries use ``n`` threads: set before
     they start (the first GL context, the first numba or BLAS call)."""
