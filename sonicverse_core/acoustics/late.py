@@ -33,15 +33,22 @@ class NeighbourTail:
     tail weights (``w``) and per-group amplitudes (``shapes``), the room (``room``; -1 idle), the coupled mode
     (``mode``) and whether its convolution still rings (``live``); ``key`` what its weights and amplitudes were made
     for, ``at`` where its direction was found (found again 10 cm on); ``buildup`` its sends' build-up (None: off).
-    Its sends are its own (``LateState.sends_slow[1 + j]``): their distance law takes its mode's decay."""
+    Its sends are its own (``LateState.sends_slow[1 + j]``): their distance law takes its mode's decay. With the
+    FDN option (``RenderConfig.reverb="fdn"``) ``conv`` is None and ``fdn`` a network of its own, decaying as its
+    mode, fed the groups' sends at their mid-band amplitudes (``mid``, made for ``fdn_key``), without a direction."""
 
     __slots__ = ("conv", "ears", "portal", "portal_idx", "w", "shapes", "room", "mode", "live", "key", "at",
-                 "buildup")
+                 "buildup", "fdn", "mid", "fdn_key")
 
-    def __init__(self, conv, block: int, buildup=None):
-        self.conv, self.ears, self.buildup = conv, PortalEars(block), buildup
+    def __init__(self, conv, block: int, buildup=None, fdn=None, groups: int = 0):
+        self.conv, self.ears, self.buildup, self.fdn = conv, PortalEars(block), buildup, fdn
         self.portal, self.portal_idx, self.w, self.shapes, self.room, self.live = None, -1, None, None, -1, False
-        self.mode, self.key, self.at = -1, None, None
+        self.mode, self.key, self.at, self.fdn_key = -1, None, None, None
+        self.mid = np.ones(groups, np.float32) if fdn is not None else None
+
+    def reverb(self):
+        """Its reverberator: the convolution or the FDN."""
+        return self.conv if self.conv is not None else self.fdn
 
 
 class LateState(PerSource):
@@ -173,9 +180,8 @@ class LateReverb:
     # --- the subsystem protocol ----------------------------------------------------------------------------------
     def state(self, cap: int) -> LateState:
         cfg = self.r.cfg
-        # rooms beyond two: the modes that ring in yet other rooms, each heard apart (convolution only)
-        extra = max(min(cfg.neighbour_tails, len(self.r.coupling.rooms) - 2), 0) \
-            if self.modal and cfg.reverb != "fdn" else 0
+        # rooms beyond two: the modes that ring in yet other rooms, each heard apart
+        extra = max(min(cfg.neighbour_tails, len(self.r.coupling.rooms) - 2), 0) if self.modal else 0
         # the coupled modes' sends (the slowest, then each neighbour tail's): their distance law takes their decay
         st = LateState(cap, self.groups, cfg.block, modes=1 + extra if self.modal else 0)
         buildup = cfg.tail_buildup > 0 and self.groups > 1  # other rooms' sends build up (rooms known)
@@ -193,10 +199,12 @@ class LateReverb:
             st.mid = np.ones(self.groups, np.float32)
             st.mono = np.zeros(cfg.block, np.float32)
             st.fdn_out = np.zeros((2, cfg.block))
-            if self.modal:  # a second network: the slowest coupled mode
+            if self.modal:  # a second network: the slowest coupled mode; one more per neighbour's mode
                 st.fdn_slow = FDNReverb(cfg.sample_rate, cfg.block)
                 st.mid_own = np.ones(self.groups, np.float32)
                 st.mid_slow = np.ones(self.groups, np.float32)
+                st.more = [NeighbourTail(None, cfg.block, build_up(), fdn=FDNReverb(cfg.sample_rate, cfg.block),
+                                         groups=self.groups) for _ in range(extra)]
         else:
             from sonicverse_core.acoustics.reverb import ConvolutionReverb
 
@@ -234,7 +242,7 @@ class LateReverb:
 
     def reset(self, st: LateState) -> None:
         for rev in (st.fdn, st.fdn_slow, st.conv, st.conv_slow, st.buildup, st.buildup_slow,
-                    *(t.conv for t in st.more), *(t.buildup for t in st.more)):
+                    *(t.reverb() for t in st.more), *(t.buildup for t in st.more)):
             if rev is not None:
                 rev.reset()
         st.level, st.key, st.fdn_key = None, None, None
@@ -372,9 +380,10 @@ class LateReverb:
 
     def _fdn_modal(self, st, split, lr, sends, out) -> None:
         """The FDN option with rooms of their own: one network decaying as the listener's room does with its doors
-        as they are, one as the slowest mode, each fed the rooms' sends at their mid-band amplitudes of the energy
-        balance (the cheap option: two decay times per network, no per-band shapes, the slow tail without a
-        direction)."""
+        as they are, one as the slowest mode and one per neighbour's mode heard apart (:meth:`_apart`), each fed the
+        rooms' sends at their mid-band amplitudes of the energy balance (the cheap option: two decay times per
+        network, no per-band shapes, the other rooms' tails without a direction). A neighbour's network left idle
+        rings out, then stops."""
         if st.fdn_key != st.modal_key:  # the doors or the listener moved: new decays and amplitudes
             own, slow = split["own_rt"][lr], split["slow_rt"]
             st.fdn.set_rt60(float(np.mean(own[3:6])), float(own[7]))
@@ -386,6 +395,23 @@ class LateReverb:
         for fdn, mid, x in ((st.fdn, st.mid_own, sends), (st.fdn_slow, st.mid_slow, st.sends_slow[0])):
             np.matmul(mid, x, out=st.mono)
             np.add(out, fdn.process(st.mono, out=st.fdn_out), out=out)
+        lo = float(np.mean(split["own_rt"][lr, 3:6]))
+        for j, t in enumerate(st.more, 1):
+            if not t.live:
+                continue
+            if t.room >= 0 and t.fdn_key != t.key:  # woken, or the doors or the listener's room changed
+                rt = split["modes_rt"][t.mode]
+                t.fdn.set_rt60(float(np.mean(rt[3:6])), float(rt[7]))
+                t.mid[:] = t.shapes[:, MID].mean(1)
+                t.fdn_key = t.key
+            if t.buildup is not None:
+                t.buildup.process(st.sends_slow[j], lr, max(st.rt_slow[j, 0], lo))
+            np.matmul(t.mid, st.sends_slow[j], out=st.mono)
+            add = t.fdn.process(st.mono, out=st.fdn_out)
+            np.add(out, add, out=out)
+            if t.room < 0 and max(float(add.max()), -float(add.min())) < 1e-7:  # idle and rung out: stop
+                t.live, t.fdn_key = False, None
+                t.fdn.reset()
 
     def _portal_ears(self, st, lis):
         """A tail's direction when it rings in another room (``st``: the late state for the slow tail, or a
@@ -522,7 +548,7 @@ class LateReverb:
                 t.shapes = np.empty((self.groups, len(BANDS)))
                 t.shapes[0], t.shapes[1:] = amp[lr], amp
                 if t.room < 0 and not t.live:  # woken: no history from an earlier room
-                    t.conv.reset()
+                    t.reverb().reset()
                     if t.buildup is not None:
                         t.buildup.reset()
                 t.room, t.mode, t.live, t.key, t.at = room, k, True, key, None

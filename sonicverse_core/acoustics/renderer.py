@@ -47,7 +47,8 @@ listeners are added):
   1.25 times slower than the listener's room alone, are heard apart as well: one tail each (the nearest probe of
   that room), from that room's doorway, chosen by the energy they bring into the listener's room
   (``late.LateReverb._apart``); a hall between two live rooms hears each of them decay as itself. Each mode heard
-  apart has sends of its own, whose distance law takes that mode's decay.
+  apart has sends of its own, whose distance law takes that mode's decay. The FDN option (``reverb="fdn"``) gives
+  each mode heard apart a network of its own, without a direction.
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
