@@ -218,6 +218,8 @@ def add_audio_commands(sub, bench_sub) -> None:
                     "default: %(default)s)")
     bf.add_argument("--neighbour-tails", type=A.count(0, 4), default=RenderConfig.neighbour_tails, metavar="N",
                     help="coupled rooms heard apart besides the slowest mode's (default: %(default)s)")
+    bf.add_argument("--reverb", choices=("convolution", "fdn"), default="convolution",
+                    help="our late reverb: partitioned convolution (default) or the cheaper FDN")
     bf.add_argument("--case", metavar="TEXT", default=None,
                     help="only the cases whose name contains TEXT (e.g. 'hall', 'shoebox')")
     bf.set_defaults(func=cmd_bench_fidelity)
@@ -260,7 +262,7 @@ def cmd_bench_fidelity(a) -> int:
 
     print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
                                     a.er_images, a.realisations, a.tail_edt == "on", a.tail_buildup,
-                                    a.neighbour_tails, a.case)))
+                                    a.neighbour_tails, a.case, a.reverb)))
     return 0
 
 
