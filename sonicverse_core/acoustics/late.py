@@ -81,7 +81,7 @@ class LateState(PerSource):
         self.portal_idx = -1
         self.level = None
         self.buildup = self.buildup_slow = None  # TailBuildUp of other rooms' sends (RenderConfig.tail_buildup)
-        self.more: list[NeighbourTail] = []  # coupled modes heard apart besides the slowest (convolution only)
+        self.more: list[NeighbourTail] = []  # coupled modes heard apart besides the slowest (a tail or network each)
         self.sends = np.zeros((groups, block), np.float32)
         self.rt_send = np.full(groups, 0.5)  # per group the decay its sends' distance law uses (late_send)
         self.rt_slow = np.full((modes, groups), 0.5)  # the same for the coupled modes' sends
