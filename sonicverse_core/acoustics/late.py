@@ -364,7 +364,7 @@ class LateReverb:
             st.buildup.process(sends, lr, lo)
             st.buildup_slow.process(st.sends_slow[0], lr, st.rt_slow[0, 0])  # the slowest mode's decay, >= lo
         if st.fdn is not None:
-            self._fdn_modal(st, split, lr, sends, out)
+            self._fdn_modal(st, split, lr, sends, lo, out)
             return
         (w_own, w_slow), (sh_own, sh_slow) = st.modal_w, st.modal_shapes
         st.conv.process(sends, w_own, sh_own, out=out, shapes_key=key)
@@ -378,7 +378,7 @@ class LateReverb:
                                ears=self._portal_ears(t, lis))
                 t.live = t.room >= 0  # an idle tail ramps to silence in one block, then stops
 
-    def _fdn_modal(self, st, split, lr, sends, out) -> None:
+    def _fdn_modal(self, st, split, lr, sends, lo, out) -> None:
         """The FDN option with rooms of their own: one network decaying as the listener's room does with its doors
         as they are, one as the slowest mode and one per neighbour's mode heard apart (:meth:`_apart`), each fed the
         rooms' sends at their mid-band amplitudes of the energy balance (the cheap option: two decay times per
@@ -395,7 +395,6 @@ class LateReverb:
         for fdn, mid, x in ((st.fdn, st.mid_own, sends), (st.fdn_slow, st.mid_slow, st.sends_slow[0])):
             np.matmul(mid, x, out=st.mono)
             np.add(out, fdn.process(st.mono, out=st.fdn_out), out=out)
-        lo = float(np.mean(split["own_rt"][lr, 3:6]))
         for j, t in enumerate(st.more, 1):
             if not t.live:
                 continue
