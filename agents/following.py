@@ -21,7 +21,8 @@ from collections import deque
 
 import numpy as np
 
-from agents.scripted import Agent, MapDriver, _pursue, _wheels, ego_offsets, next_waypoint, window_cells
+from agents.scripted import (Agent, MapDriver, _pursue, _wheels, draw_route, ego_offsets, next_waypoint,
+                             window_cells)
 
 
 class OracleFollower(Agent):
@@ -226,8 +227,6 @@ class EgoMap(MapFollower):
         self.action = self.act(obs, info)  # the scripted follower's (``train --teacher scripted``'s labels)
         p, yaw = self.me.pose[:2], self.me.pose[2]
         x, y, r, c, inside = window_cells(self.map.grid, p[0], p[1], yaw, self._fwd, self._left)
-        a = math.radians(yaw)
-        ca, sa = math.cos(a), math.sin(a)
         img = self.image
         img[0] = (self._floor[r, c] & inside).reshape(self.SIZE, self.SIZE) * np.uint8(255)
         b = self.ears.belief[0]
@@ -243,17 +242,7 @@ class EgoMap(MapFollower):
         img[2] = np.round(255 * seen)
         img[3] = 0
         if self._routed and self.path is not None:
-            pts = np.vstack([p[None], self.path[min(self.k, len(self.path) - 1):]])
-            seg = [np.linspace(pts[i], pts[i + 1], max(2, int(np.hypot(*(pts[i + 1] - pts[i])) / 0.1) + 1))
-                   for i in range(len(pts) - 1)]
-            if seg:
-                q = np.vstack(seg) - p
-                f = ca * q[:, 0] + sa * q[:, 1]
-                left = -sa * q[:, 0] + ca * q[:, 1]
-                i = np.floor(self.SIZE / 2 - f / self.RES).astype(int)
-                j = np.floor(self.SIZE / 2 - left / self.RES).astype(int)
-                ok = (i >= 0) & (i < self.SIZE) & (j >= 0) & (j < self.SIZE)
-                img[3, i[ok], j[ok]] = 255
+            draw_route(img[3], p, yaw, np.vstack([p[None], self.path[min(self.k, len(self.path) - 1):]]), self.RES)
         return img
 
 

@@ -41,9 +41,13 @@ MAP_SENSORS = SENSORS + ("audio",)  # a policy with a map input: EgoMap listens 
 
 
 MAP_TASKS = {"SpeakerFollowing": "follow", "AudioGoal": "nav", "SemanticAudioNav": "sem"}  # train --map: which map
+ROUTE_TASKS = ("AudioGoal", "SemanticAudioNav")  # train --map route: sem-nav's route drawn in (RouteNavMap)
+#: the env sensors sem-nav acts on (SemNavExpert, RouteNavMap)
+SEMNAV_SENSORS = ("depth", "semantic", "spectrogram", "audio", "pose", "bump")
 #: the env sensors a policy with each kind of map acts on (EgoMap listens to the raw block; SemNavMap reads the
-#: semantic camera, and its teacher, sem-nav, the raw block)
-MAP_KIND_SENSORS = {"follow": MAP_SENSORS, "nav": SENSORS, "sem": SENSORS + ("semantic", "audio")}
+#: semantic camera, and its teacher, sem-nav, the raw block; RouteNavMap runs sem-nav every step)
+MAP_KIND_SENSORS = {"follow": MAP_SENSORS, "nav": SENSORS, "sem": SENSORS + ("semantic", "audio"),
+                    "route": SEMNAV_SENSORS}
 
 
 def _map_kind(model) -> str | None:
@@ -58,14 +62,15 @@ def sensors_for(model) -> tuple:
 def map_class(kind: str):
     """The map a ``map_kind`` names: "follow" :class:`agents.following.EgoMap` (speaker following, from the task's
     floor plan), "nav" :class:`agents.navmap.NavEgoMap` (navigation, built from depth, sound and odometry), "sem"
-    :class:`agents.navmap.SemNavMap` (SemanticAudioNav: that and where the camera saw the category the ears name)."""
+    :class:`agents.navmap.SemNavMap` (SemanticAudioNav: that and where the camera saw the category the ears name),
+    "route" :class:`agents.navmap.RouteNavMap` (that and the way sem-nav would go now)."""
     if kind == "follow":
         from agents.following import EgoMap
 
         return EgoMap
-    from agents.navmap import NavEgoMap, SemNavMap
+    from agents.navmap import NavEgoMap, RouteNavMap, SemNavMap
 
-    return SemNavMap if kind == "sem" else NavEgoMap
+    return {"sem": SemNavMap, "route": RouteNavMap}.get(kind, NavEgoMap)
 
 
 def ego_for(model):
@@ -115,6 +120,7 @@ class ImitationConfig:
     homes: int = 0  # train homes episodes are drawn from: the first N seeds of the train split (0: the split's
     # default, DEFAULT_HOMES["train"] = 16)
     egomap: bool = False  # av-nav: an egocentric map input (MAP_TASKS: EgoMap when following, else NavEgoMap)
+    route: bool = False  # with egomap on ROUTE_TASKS: RouteNavMap, sem-nav's route drawn in (train --map route)
     teacher: str = "oracle"  # whose actions are the labels: the privileged "oracle", or (speaker following with
     # the map) the "scripted" follower, or (SemanticAudioNav with the map) sem-nav, which act on what the map
     # shows, so their labels do not ask for what the policy cannot know (the imitation gap); the goal heads still
@@ -224,9 +230,6 @@ class SemNavExpert(Expert):
         return np.asarray(self.teacher.act(obs, info), np.float32)
 
 
-#: the env sensors sem-nav acts on (SemNavExpert)
-SEMNAV_SENSORS = ("depth", "semantic", "spectrogram", "audio", "pose", "bump")
-
 
 def expert_for(task: str, cfg: "ImitationConfig | None" = None):
     """The labels' source for ``task``: the oracle (the oracle follower on speaker following), or sem-nav where
@@ -236,11 +239,16 @@ def expert_for(task: str, cfg: "ImitationConfig | None" = None):
     return EXPERTS.get(task, Expert)()
 
 
+def map_kind_for(cfg: "ImitationConfig") -> str:
+    """The kind of map ``cfg`` trains a policy to read (with ``cfg.egomap``): the task's, or "route"."""
+    return "route" if cfg.route else MAP_TASKS.get(cfg.task, "nav")
+
+
 def collect_sensors(cfg: "ImitationConfig") -> tuple:
     """The env sensors DAgger collects with: the policy's (a map policy's include what its map reads), and sem-nav's
     where it is the teacher without a map."""
     if cfg.egomap:
-        return MAP_KIND_SENSORS[MAP_TASKS[cfg.task]]
+        return MAP_KIND_SENSORS[map_kind_for(cfg)]
     return SEMNAV_SENSORS if cfg.teacher == "scripted" else SENSORS
 
 
@@ -493,7 +501,7 @@ def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
     """The untrained policy ``cfg.agent`` names, for the env's spectrogram shape and action size."""
     prims = primitives_for(action_dim) if cfg.head == "discrete" else ()
     if cfg.agent == "av-nav":
-        kind = MAP_TASKS.get(cfg.task, "nav")
+        kind = map_kind_for(cfg)
         M = map_class(kind)
         shape = (M.CHANNELS, M.SIZE, M.SIZE) if cfg.egomap else ()
         return AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec_shape, action_dim=action_dim,
@@ -582,11 +590,14 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
         raise ConfigError(f"learner must be greedy or drawn, got {cfg.learner!r}")
     if cfg.teacher not in ("oracle", "scripted"):
         raise ConfigError(f"teacher must be oracle or scripted, got {cfg.teacher!r}")
-    if cfg.teacher == "scripted" and not (MAP_TASKS.get(cfg.task) in ("follow", "sem") if cfg.egomap
+    if cfg.route and not (cfg.egomap and cfg.task in ROUTE_TASKS):
+        raise ConfigError(f"--map route is for av-nav on {' and '.join(ROUTE_TASKS)}")
+    if cfg.teacher == "scripted" and not (map_kind_for(cfg) in ("follow", "sem", "route") if cfg.egomap
                                           else cfg.task in ("AudioGoal", "SemanticAudioNav")):
         raise ConfigError("--teacher scripted is for --map on SpeakerFollowing (the scripted follower draws the map) "
-                          "or SemanticAudioNav (sem-nav acts on what the semantic map shows), or without --map on "
-                          "AudioGoal and SemanticAudioNav (sem-nav acts on the robot's own sensors)")
+                          "or SemanticAudioNav (sem-nav acts on what the semantic map shows), --map route on "
+                          "AudioGoal and SemanticAudioNav (sem-nav's route), or without --map on AudioGoal and "
+                          "SemanticAudioNav (sem-nav acts on the robot's own sensors)")
     resolve_device(cfg.device)  # an unknown or absent device fails before anything is written
     out = Path(out)
     ck_path = out / "model.pt"

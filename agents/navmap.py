@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.scripted import ego_offsets, grid_cells, map_depth, project_depth
+from agents.scripted import draw_route, ego_offsets, grid_cells, map_depth, project_depth
 
 
 class NavEgoMap:
@@ -237,6 +237,36 @@ class SemNavMap(NavEgoMap):
         else:
             hit = ((self.seen[r, q] >> self.bit[k]) & 1).astype(bool) & ok
             img[4] = hit.reshape(self.SIZE, self.SIZE) * np.uint8(255)
+        return img
+
+
+class RouteNavMap(SemNavMap):
+    """:class:`SemNavMap` with a sixth channel, the way sem-nav would go now (``train --map route`` on AudioGoal and
+    SemanticAudioNav; ``map_kind`` "route"), as :class:`agents.following.EgoMap` draws the scripted follower's:
+
+    5. :class:`agents.semnav.SemNavAgent`'s route from the robot, at 255 to a sighting of the named category it
+       would stop beside, at 128 to the frontier it would explore; while it would turn to face the sighting, the
+       line from the robot to it at 255; empty while it turns on the spot to hear the sound first.
+
+    sem-nav runs on the robot's own observations every step (as the follower's map runs the scripted follower), so
+    this map is as privileged as sem-nav: the semantic camera's ground-truth category ids, nothing else. With
+    ``train --teacher scripted`` its action is also the label, so the policy learns actions its map explains."""
+
+    CHANNELS = 6
+    teach = True  # sem-nav acts every step, to draw its route (its action is the label only with --teacher scripted)
+
+    def observe(self, obs, info) -> np.ndarray:
+        img = super().observe(obs, info)
+        img[5] = 0
+        t = self.teacher
+        x, y, s, c = (float(v) for v in obs["pose"])
+        p, yaw = np.array([x, y]), math.degrees(math.atan2(s, c))
+        if t.mode == "face" and t.target is not None:
+            cells = t.target[1]
+            draw_route(img[5], p, yaw, [p, cells[int(np.argmin(np.linalg.norm(cells - p, axis=1)))]], self.RES)
+        elif t.mode in ("explore", "approach") and t.path is not None and len(t.path) > 0:
+            draw_route(img[5], p, yaw, np.vstack([p[None], t.path[min(t.k, len(t.path) - 1):]]), self.RES,
+                       255 if t.mode == "approach" else 128)
         return img
 
 

@@ -488,6 +488,27 @@ def ego_offsets(size: int, res: float) -> tuple[np.ndarray, np.ndarray]:
     return -np.repeat(c[:, None], size, 1), -np.repeat(c[None, :], size, 0)
 
 
+def draw_route(channel: np.ndarray, p, yaw: float, pts, res: float, value: int = 255) -> None:
+    """Draw the polyline ``pts`` (world x, y; its first point is usually the robot's) into ``channel``, an egocentric
+    image (H, W) of ``res`` m pixels with the robot at ``p`` (x, y) at the centre facing ``yaw`` degrees to the top,
+    its left to the left (:func:`ego_offsets`' frame), at ``value``; what falls outside the image is left out."""
+    pts = np.asarray(pts, float)
+    seg = [np.linspace(pts[i], pts[i + 1], max(2, int(np.hypot(*(pts[i + 1] - pts[i])) / 0.1) + 1))
+           for i in range(len(pts) - 1)]
+    if not seg:
+        return
+    a = math.radians(yaw)
+    ca, sa = math.cos(a), math.sin(a)
+    q = np.vstack(seg) - np.asarray(p, float)
+    f = ca * q[:, 0] + sa * q[:, 1]
+    left = -sa * q[:, 0] + ca * q[:, 1]
+    H, W = channel.shape
+    i = np.floor(H / 2 - f / res).astype(int)
+    j = np.floor(W / 2 - left / res).astype(int)
+    ok = (i >= 0) & (i < H) & (j >= 0) & (j < W)
+    channel[i[ok], j[ok]] = value
+
+
 def window_cells(grid, x: float, y: float, yaw: float, fwd: np.ndarray, left: np.ndarray):
     """A window of points ``fwd`` m ahead of and ``left`` m to the left of a robot at (``x``, ``y``) facing ``yaw``
     degrees, on ``grid`` (a NavGrid): the points' world x and y (shaped as ``fwd``), and per point (flattened) the

@@ -145,7 +145,8 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     and kind, and the harness plays it with the sensors it needs (the raw audio block for the belief). On AudioGoal
     it reads the map the robot draws (NavEgoMap), on SemanticAudioNav that and the semantic camera's sightings of
     the category its ears name (SemNavMap, with the semantic sensor; there `--teacher scripted` is sem-nav).
-    Elsewhere `--map`, and `--teacher scripted` without those maps, are one line and exit 2. PPO fine-tunes such a policy with its map and floor shield."""
+    Elsewhere `--map` (and `--map route` off the navigation tasks), and `--teacher scripted` without those maps, are
+    one line and exit 2. PPO fine-tunes such a policy with its map and floor shield."""
     from agents.following import EgoMap
     from agents.imitation import SENSORS, ego_for, floor_shield, sensors_for
     from agents.navmap import NavEgoMap, SemNavMap
@@ -191,6 +192,9 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     r = cli("train", "--task", "AudioGoal", "--map", "--teacher", "scripted", "--frames", "100", "--out",
             str(tmp_path / "y"), check_rc=2)
     assert "--teacher scripted is for" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = cli("train", "--task", "SpeakerFollowing", "--map", "route", "--frames", "100", "--out", str(tmp_path / "w"),
+            check_rc=2)  # sem-nav's route is for the navigation tasks
+    assert "--map route" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     r = cli("train", "--recipe", "ppo", "--learner", "drawn", "--frames", "100", "--out", str(tmp_path / "z"),
             check_rc=2)
     assert "--learner is for" in r.stderr and len(r.stderr.strip().splitlines()) == 1

@@ -75,3 +75,49 @@ def test_sem_nav_finds_the_sounding_category_and_stops_beside_it(i):
         assert info["metrics"]["success"] == 1.0 and term and info["steps"] < 200, info["metrics"]
     finally:
         env.close()
+
+
+def test_the_route_map_draws_the_way_sem_nav_would_go():
+    """RouteNavMap (`train --map route`): channel 5 is empty while sem-nav turns on the spot to hear the sound, then
+    shows its route from the robot. Drawn back onto the world through the robot's pose, every lit pixel lies within
+    a pixel's diagonal of the polyline sem-nav drives (a mirrored or rotated image fails), at 128 while it explores
+    and 255 once it drives to a sighting. A policy trained with it records the kind and reads sem-nav's sensors."""
+    from agents.imitation import MAP_KIND_SENSORS, ImitationConfig, build_policy, ego_for, sensors_for
+    from agents.navmap import RouteNavMap
+    from sonicverse_core.tasks import make_env
+
+    S, R = RouteNavMap.SIZE, RouteNavMap.RES
+    u = (np.arange(S) + 0.5 - S / 2) * R
+    fwd, left = -np.repeat(u[:, None], S, 1), -np.repeat(u[None, :], S, 0)
+    env = make_env("SemanticAudioNav", split="val", sensors=MAP_KIND_SENSORS["route"], width=64, height=64)
+    try:
+        obs, info = env.reset(seed=1)
+        m = RouteNavMap()
+        m.reset(env, obs, info)
+        drawn, modes = 0, set()
+        for _ in range(60):
+            img = m.observe(obs, info)
+            t = m.teacher
+            lit = img[5] > 0
+            if t.mode == "spin":
+                assert not lit.any()
+            elif t.mode in ("explore", "approach"):
+                assert lit.any() and set(np.unique(img[5][lit])) == {128 if t.mode == "explore" else 255}
+                x, y, s, c = (float(v) for v in obs["pose"])
+                a = math.atan2(s, c)
+                pts = np.stack([x + math.cos(a) * fwd[lit] - math.sin(a) * left[lit],
+                                y + math.sin(a) * fwd[lit] + math.cos(a) * left[lit]], 1)
+                line = np.vstack([[x, y], t.path[min(t.k, len(t.path) - 1):]])
+                seg = np.vstack([np.linspace(line[i], line[i + 1], 50) for i in range(len(line) - 1)])
+                gap = np.linalg.norm(pts[:, None] - seg[None], axis=2).min(1)
+                assert gap.max() <= R * math.sqrt(2) / 2 + 0.02, gap.max()
+                drawn += 1
+            modes.add(t.mode)
+            obs, _, term, trunc, info = env.step(np.asarray(m.action, np.float32))
+            assert not (term or trunc)
+        assert "spin" in modes and drawn >= 20, (modes, drawn)
+    finally:
+        env.close()
+    pol = build_policy(ImitationConfig(task="AudioGoal", egomap=True, route=True), (2, 65, 26), 2)
+    assert pol.cfg.map_kind == "route" and pol.cfg.map_shape == (6, S, S)
+    assert isinstance(ego_for(pol), RouteNavMap) and set(sensors_for(pol)) >= {"semantic", "bump", "audio"}

@@ -50,10 +50,14 @@ def cmd_train(a) -> int:
         from sonicverse_core.errors import ConfigError
 
         raise ConfigError("--temperature is an ensemble's acting setting: give it with --ensemble")
+    if a.map == "route" and a.task not in ("AudioGoal", "SemanticAudioNav"):
+        raise ConfigError("--map route (sem-nav's route) is for --task AudioGoal|SemanticAudioNav")
     if a.teacher != "oracle" and not (a.recipe == "dagger" and a.agent == "av-nav" and a.task in (
+            ("AudioGoal", "SemanticAudioNav") if a.map == "route" else
             ("SpeakerFollowing", "SemanticAudioNav") if a.map else ("AudioGoal", "SemanticAudioNav"))):
         raise ConfigError("--teacher scripted is for --recipe dagger --agent av-nav: with --map on "
-                          "SpeakerFollowing|SemanticAudioNav, without on AudioGoal|SemanticAudioNav (sem-nav)")
+                          "SpeakerFollowing|SemanticAudioNav, --map route or no map on AudioGoal|SemanticAudioNav "
+                          "(sem-nav)")
     if a.learner != "greedy" and a.recipe != "dagger":
         raise ConfigError("--learner is for --recipe dagger (PPO's learner always draws its actions)")
     if a.map and (a.recipe != "dagger" or a.agent != "av-nav"
@@ -130,7 +134,7 @@ def _imitation_config(a):
     return ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
                            size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
                            aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
-                           homes=a.homes or 0, egomap=a.map, teacher=a.teacher, learner=a.learner, jobs=a.jobs,
+                           homes=a.homes or 0, egomap=bool(a.map), route=a.map == "route", teacher=a.teacher, learner=a.learner, jobs=a.jobs,
                            dataset_frames=a.dataset_frames)
 
 
@@ -440,11 +444,13 @@ def add_task_commands(sub, bench_sub) -> None:
                    "(default: %(default)s)")
     t.add_argument("--homes", type=A.count(1, 5000), default=None,
                    help="draw training episodes from the first N train homes (default: 16)")
-    t.add_argument("--map", action="store_true", help="av-nav: read an egocentric map; on "
+    t.add_argument("--map", nargs="?", const="task", choices=("task", "route"), default=None,
+                   help="av-nav: read an egocentric map; on "
                    "SpeakerFollowing the floor plan, the scripted follower's belief of where the person is, who the "
                    "camera saw, its route; on AudioGoal what the robot mapped itself: obstacles and floor from depth, "
                    "how loud the sound was where it stood, its track; on SemanticAudioNav that and where the "
-                   "semantic camera saw the category its ears name; trained on --teacher's actions")
+                   "semantic camera saw the category its ears name; '--map route' (AudioGoal, SemanticAudioNav): "
+                   "the semantic map and the way sem-nav would go now; trained on --teacher's actions")
     t.add_argument("--teacher", choices=("oracle", "scripted"), default="oracle",
                    help="imitation: whose actions the policy learns, the privileged oracle's or (--map on "
                    "SpeakerFollowing) the scripted follower's or (--map on SemanticAudioNav) sem-nav's, which see "
