@@ -230,7 +230,6 @@ class SemNavExpert(Expert):
         return np.asarray(self.teacher.act(obs, info), np.float32)
 
 
-
 def expert_for(task: str, cfg: "ImitationConfig | None" = None):
     """The labels' source for ``task``: the oracle (the oracle follower on speaker following), or sem-nav where
     ``cfg`` asks for the scripted teacher without a map (with a map the map's own scripted agent labels)."""

@@ -134,8 +134,8 @@ def _imitation_config(a):
     return ImitationConfig(task=a.task, agent=a.agent, memory=a.memory, frames=a.frames, iterations=a.iterations,
                            size=a.size, val_episodes=a.val_episodes, seed=a.seed, head=a.head,
                            aux_weight=a.aux_weight, epochs=a.epochs or 4, seq=a.seq, device=a.device,
-                           homes=a.homes or 0, egomap=bool(a.map), route=a.map == "route", teacher=a.teacher, learner=a.learner, jobs=a.jobs,
-                           dataset_frames=a.dataset_frames)
+                           homes=a.homes or 0, egomap=bool(a.map), route=a.map == "route", teacher=a.teacher,
+                           learner=a.learner, jobs=a.jobs, dataset_frames=a.dataset_frames)
 
 
 def cmd_bench_env(a) -> int:
