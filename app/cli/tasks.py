@@ -50,8 +50,6 @@ def cmd_train(a) -> int:
         from sonicverse_core.errors import ConfigError
 
         raise ConfigError("--temperature is an ensemble's acting setting: give it with --ensemble")
-    if a.map == "route" and a.task not in ("AudioGoal", "SemanticAudioNav"):
-        raise ConfigError("--map route (sem-nav's route) is for --task AudioGoal|SemanticAudioNav")
     if a.teacher != "oracle" and not (a.recipe == "dagger" and a.agent == "av-nav" and a.task in (
             ("AudioGoal", "SemanticAudioNav") if a.map == "route" else
             ("SpeakerFollowing", "SemanticAudioNav") if a.map else ("AudioGoal", "SemanticAudioNav"))):
