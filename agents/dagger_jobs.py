@@ -9,8 +9,8 @@ from dataclasses import asdict
 import numpy as np
 import torch
 
-from agents.imitation import (NAV_VAL, ROLLOUT_STEPS, VAL_KEYS, ImitationConfig, collect_sensors, ego_for,
-                              eval_episodes, labellers, run_episode, sensors_for)
+from agents.imitation import NAV_VAL, ROLLOUT_STEPS, VAL_KEYS, ImitationConfig, eval_episodes, labellers, run_episode
+from agents.maps import collect_sensors, ego_for, sensors_for
 
 
 class Jobs:

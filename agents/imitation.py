@@ -36,62 +36,9 @@ import torch
 from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load_policy, load_train_state,
                            primitives_for, resolve_device, save_policy as save)
 
-SENSORS = ("depth", "spectrogram", "pose")
-MAP_SENSORS = SENSORS + ("audio",)  # a policy with a map input: EgoMap listens to the raw block
-
-
-MAP_TASKS = {"SpeakerFollowing": "follow", "AudioGoal": "nav", "SemanticAudioNav": "sem"}  # train --map: which map
-ROUTE_TASKS = ("AudioGoal", "SemanticAudioNav")  # train --map route: sem-nav's route drawn in (RouteNavMap)
-#: the env sensors sem-nav acts on (SemNavExpert, RouteNavMap)
-SEMNAV_SENSORS = ("depth", "semantic", "spectrogram", "audio", "pose", "bump")
-#: the env sensors a policy with each kind of map acts on (EgoMap listens to the raw block; SemNavMap reads the
-#: semantic camera, and its teacher, sem-nav, the raw block; RouteNavMap runs sem-nav every step)
-MAP_KIND_SENSORS = {"follow": MAP_SENSORS, "nav": SENSORS, "sem": SENSORS + ("semantic", "audio"),
-                    "route": SEMNAV_SENSORS}
-
-
-def _map_kind(model) -> str | None:
-    return getattr(model.cfg, "map_kind", "follow") if getattr(model.cfg, "map_shape", ()) else None
-
-
-def sensors_for(model) -> tuple:
-    """The env sensors ``model`` acts on."""
-    return MAP_KIND_SENSORS.get(_map_kind(model), SENSORS)
-
-
-def map_class(kind: str):
-    """The map a ``map_kind`` names: "follow" :class:`agents.following.EgoMap` (speaker following, from the task's
-    floor plan), "nav" :class:`agents.navmap.NavEgoMap` (navigation, built from depth, sound and odometry), "sem"
-    :class:`agents.navmap.SemNavMap` (SemanticAudioNav: that and where the camera saw the category the ears name),
-    "route" :class:`agents.navmap.RouteNavMap` (that and the way sem-nav would go now)."""
-    if kind == "follow":
-        from agents.following import EgoMap
-
-        return EgoMap
-    from agents.navmap import NavEgoMap, RouteNavMap, SemNavMap
-
-    return {"sem": SemNavMap, "route": RouteNavMap}.get(kind, NavEgoMap)
-
-
-def ego_for(model):
-    """The egocentric map a policy with a map input reads (None for the others)."""
-    kind = _map_kind(model)
-    return None if kind is None else map_class(kind)()
-
-
-SHIELD_S = 0.3  # s: the floor shield's horizon (agents.learned.AVNavAgent.shield_s)
-
-
-def floor_shield(model, ego, horizon_s: float | None = SHIELD_S):
-    """The actions a discrete policy that reads the task's floor plan (:class:`agents.following.EgoMap`) may take
-    now: those that, held for ``horizon_s``, keep it on the plan's navigable floor
-    (:func:`agents.following.floor_safe`); None (no restriction) for other policies or without a horizon. Call it
-    after ``ego.observe`` (which moves the map's robot to this step's pose)."""
-    from agents.following import EgoMap, floor_safe
-
-    if not horizon_s or not model.discrete or not isinstance(ego, EgoMap):
-        return None
-    return floor_safe(model.table.cpu().numpy(), ego.map.grid, ego.me.pose, ego.robot, horizon_s)
+from agents.maps import (MAP_KIND_SENSORS, MAP_SENSORS, MAP_TASKS, ROUTE_TASKS, SEMNAV_SENSORS,  # noqa: F401
+                         SENSORS, SHIELD_S, _map_kind, collect_sensors, ego_for, floor_shield, map_class,
+                         map_kind_for, sensors_for)
 
 
 @dataclass
@@ -236,19 +183,6 @@ def expert_for(task: str, cfg: "ImitationConfig | None" = None):
     if cfg is not None and cfg.teacher == "scripted" and not cfg.egomap:
         return SemNavExpert()
     return EXPERTS.get(task, Expert)()
-
-
-def map_kind_for(cfg: "ImitationConfig") -> str:
-    """The kind of map ``cfg`` trains a policy to read (with ``cfg.egomap``): the task's, or "route"."""
-    return "route" if cfg.route else MAP_TASKS.get(cfg.task, "nav")
-
-
-def collect_sensors(cfg: "ImitationConfig") -> tuple:
-    """The env sensors DAgger collects with: the policy's (a map policy's include what its map reads), and sem-nav's
-    where it is the teacher without a map."""
-    if cfg.egomap:
-        return MAP_KIND_SENSORS[map_kind_for(cfg)]
-    return SEMNAV_SENSORS if cfg.teacher == "scripted" else SENSORS
 
 
 def labellers(cfg: "ImitationConfig", model) -> tuple:

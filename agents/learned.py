@@ -42,7 +42,7 @@ class AVNavAgent(Agent):
     arch = "av-nav"  # the checkpoint's architecture
     # s: a policy that reads the task's floor plan (``--map``) never draws an action that, held this long, would
     # drive it off the plan's navigable floor (:func:`agents.following.floor_safe`); None: no such check
-    shield_s: float | None = 0.3  # agents.imitation.SHIELD_S
+    shield_s: float | None = 0.3  # agents.maps.SHIELD_S
 
     def __init__(self, rng: np.random.Generator | None = None, checkpoint=None, task: str = "AudioGoal"):
         super().__init__(rng)
@@ -56,12 +56,12 @@ class AVNavAgent(Agent):
         self.temperature = float(self.meta.get("temperature", 1.0))  # an ensemble's acting setting (its meta)
 
     def env_kwargs(self) -> dict:
-        from agents.imitation import sensors_for
+        from agents.maps import sensors_for
 
         return {"sensors": sensors_for(self.model), "width": self.size, "height": self.size}
 
     def reset(self, env, obs, info) -> None:
-        from agents.imitation import ego_for
+        from agents.maps import ego_for
 
         super().reset(env, obs, info)
         self.h = self.model.initial_state(1)
@@ -71,7 +71,8 @@ class AVNavAgent(Agent):
             self.ego.reset(env, obs, info)
 
     def act(self, obs, info) -> np.ndarray:
-        from agents.imitation import _policy_step, floor_shield
+        from agents.imitation import _policy_step
+        from agents.maps import floor_shield
 
         mp = self.ego.observe(obs, info) if self.ego is not None else None
         a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None, mp,

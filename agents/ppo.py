@@ -10,7 +10,7 @@ the first ``critic_warmup`` updates train the value head alone) or from scratch.
 0.01) drifted away from the imitation policy and lost all its successes within 56k frames.
 
 A policy with a map input (``train --map``) is fine-tuned as it plays: each env has its own egocentric map
-(:func:`agents.imitation.ego_for`), drawn once per observation, and where the policy reads the task's floor plan the
+(:func:`agents.maps.ego_for`), drawn once per observation, and where the policy reads the task's floor plan the
 floor shield's allowed actions mask its distribution in the rollouts, the update and the KL alike. Each log row's
 ``replay_err`` is the largest |ratio - 1| of the update's first pass, before any step: the update replays what acted.
 
@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agents.imitation import (NAV_VAL, SENSORS, VAL_KEYS, _inputs, _map_input, _stack, append_row, ego_for, evaluate,
-                              floor_shield, sensors_for)
+from agents.imitation import NAV_VAL, VAL_KEYS, _inputs, _map_input, _stack, append_row, evaluate
+from agents.maps import SENSORS, ego_for, floor_shield, sensors_for
 from agents.models import (AVNav, AVNavConfig, acting_threads, load_policy, primitives_for, resolve_device,
                            save_policy as save)
 
@@ -161,7 +161,7 @@ def _dist_of(model: AVNav, out: torch.Tensor, allowed: torch.Tensor | None = Non
 
 
 class _Maps:
-    """The egocentric maps of a map policy's envs (one :func:`agents.imitation.ego_for` each), drawn once per
+    """The egocentric maps of a map policy's envs (one :func:`agents.maps.ego_for` each), drawn once per
     observation (a map's belief moves on with every ``observe``), with the floor shield's allowed actions at that
     step: the same maps and the same shield the ``av-nav`` agent plays with. Empty for a policy without a map."""
 

@@ -1,0 +1,84 @@
+"""Which sensors and which egocentric map a learned policy reads, and the shield it acts through: one place for
+what training (:mod:`agents.imitation`, :mod:`agents.ppo`) and playing (:mod:`agents.learned`) must agree on.
+
+A policy's ``map_kind`` (its config's, when it has a map input) names its map: "follow" the speaker follower's
+:class:`agents.following.EgoMap` (from the task's floor plan), "nav" :class:`agents.navmap.NavEgoMap` (from depth,
+sound and odometry), "sem" :class:`agents.navmap.SemNavMap` (that and the named category's sightings), "route"
+:class:`agents.navmap.RouteNavMap` (that and the way sem-nav would go now).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from agents.imitation import ImitationConfig
+
+SENSORS = ("depth", "spectrogram", "pose")
+MAP_SENSORS = SENSORS + ("audio",)  # a policy with a map input: EgoMap listens to the raw block
+
+
+MAP_TASKS = {"SpeakerFollowing": "follow", "AudioGoal": "nav", "SemanticAudioNav": "sem"}  # train --map: which map
+ROUTE_TASKS = ("AudioGoal", "SemanticAudioNav")  # train --map route: sem-nav's route drawn in (RouteNavMap)
+#: the env sensors sem-nav acts on (SemNavExpert, RouteNavMap)
+SEMNAV_SENSORS = ("depth", "semantic", "spectrogram", "audio", "pose", "bump")
+#: the env sensors a policy with each kind of map acts on (EgoMap listens to the raw block; SemNavMap reads the
+#: semantic camera, and its teacher, sem-nav, the raw block; RouteNavMap runs sem-nav every step)
+MAP_KIND_SENSORS = {"follow": MAP_SENSORS, "nav": SENSORS, "sem": SENSORS + ("semantic", "audio"),
+                    "route": SEMNAV_SENSORS}
+
+
+def _map_kind(model) -> str | None:
+    return getattr(model.cfg, "map_kind", "follow") if getattr(model.cfg, "map_shape", ()) else None
+
+
+def sensors_for(model) -> tuple:
+    """The env sensors ``model`` acts on."""
+    return MAP_KIND_SENSORS.get(_map_kind(model), SENSORS)
+
+
+def map_class(kind: str):
+    """The map a ``map_kind`` names: "follow" :class:`agents.following.EgoMap` (speaker following, from the task's
+    floor plan), "nav" :class:`agents.navmap.NavEgoMap` (navigation, built from depth, sound and odometry), "sem"
+    :class:`agents.navmap.SemNavMap` (SemanticAudioNav: that and where the camera saw the category the ears name),
+    "route" :class:`agents.navmap.RouteNavMap` (that and the way sem-nav would go now)."""
+    if kind == "follow":
+        from agents.following import EgoMap
+
+        return EgoMap
+    from agents.navmap import NavEgoMap, RouteNavMap, SemNavMap
+
+    return {"sem": SemNavMap, "route": RouteNavMap}.get(kind, NavEgoMap)
+
+
+def ego_for(model):
+    """The egocentric map a policy with a map input reads (None for the others)."""
+    kind = _map_kind(model)
+    return None if kind is None else map_class(kind)()
+
+
+SHIELD_S = 0.3  # s: the floor shield's horizon (agents.learned.AVNavAgent.shield_s)
+
+
+def floor_shield(model, ego, horizon_s: float | None = SHIELD_S):
+    """The actions a discrete policy that reads the task's floor plan (:class:`agents.following.EgoMap`) may take
+    now: those that, held for ``horizon_s``, keep it on the plan's navigable floor
+    (:func:`agents.following.floor_safe`); None (no restriction) for other policies or without a horizon. Call it
+    after ``ego.observe`` (which moves the map's robot to this step's pose)."""
+    from agents.following import EgoMap, floor_safe
+
+    if not horizon_s or not model.discrete or not isinstance(ego, EgoMap):
+        return None
+    return floor_safe(model.table.cpu().numpy(), ego.map.grid, ego.me.pose, ego.robot, horizon_s)
+
+
+def map_kind_for(cfg: "ImitationConfig") -> str:
+    """The kind of map ``cfg`` trains a policy to read (with ``cfg.egomap``): the task's, or "route"."""
+    return "route" if cfg.route else MAP_TASKS.get(cfg.task, "nav")
+
+
+def collect_sensors(cfg: "ImitationConfig") -> tuple:
+    """The env sensors DAgger collects with: the policy's (a map policy's include what its map reads), and sem-nav's
+    where it is the teacher without a map."""
+    if cfg.egomap:
+        return MAP_KIND_SENSORS[map_kind_for(cfg)]
+    return SEMNAV_SENSORS if cfg.teacher == "scripted" else SENSORS
