@@ -264,9 +264,9 @@ class PolicyEnsemble(nn.Module):
     it does not train. Session 34's ensembles of the teacher-only recipe did not pay (on the 30 test episodes of
     speaker following, two members kept the band 0.749 of the time and three 0.695, against 0.734 and 0.715 alone,
     all within the noise); session 36's two seeds trained with ``--learner drawn`` ship as the speaker follower
-    (0.756; its better member alone 0.746 on the sound before), and since session 38 the AudioGoal policy is two
+    (0.756; its better member alone 0.746 on the sound before), and from session 38 to 44 the AudioGoal policy was two
     imitation runs joined (41.0% SR over 200 test episodes against 36.0% and 37.0% alone; README, "Learned
-    agents")."""
+    agents"; now ``av-nav_AudioGoal_oracle.pt``)."""
 
     arch = "ensemble"
 

@@ -123,17 +123,16 @@ def test_the_route_map_draws_the_way_sem_nav_would_go():
     assert isinstance(ego_for(pol), RouteNavMap) and set(sensors_for(pol)) >= {"semantic", "bump", "audio"}
 
 
-def test_the_shipped_route_policy_for_audio_goal_loads_and_beats_random(audiogoal_random_test9):
-    """agents/checkpoints/av-nav_AudioGoal_route.pt (session 44, `train --map route --teacher scripted`; 53.5% of 200
-    test episodes in the README, beside the default file): it was trained on AudioGoal, reads sem-nav's route, and
-    reaches the goal in test episodes 6 and 7 of seed 0, where random reaches none of the first 9."""
-    from pathlib import Path
-
+def test_the_shipped_audio_goal_policy_reads_the_route_and_beats_random(audiogoal_random_test9):
+    """The default AudioGoal file (since session 45 the policy that reads sem-nav's route, `train --map route
+    --teacher scripted`; 53.5% of 200 test episodes in the README): it was trained on AudioGoal, reads sem-nav's route,
+    and `--agent av-nav` without a checkpoint reaches the goal in test episodes 6 and 7 of seed 0, where random
+    reaches none of the first 9."""
+    from agents.learned import default_checkpoint
     from agents.models import load_policy
     from app.tasks.evaluate import run_eval
 
-    path = Path(__file__).resolve().parents[1] / "agents" / "checkpoints" / "av-nav_AudioGoal_route.pt"
-    model, meta = load_policy(path, "av-nav")
+    model, meta = load_policy(default_checkpoint("av-nav", "AudioGoal"), "av-nav")
     assert meta["config"]["task"] == "AudioGoal" and model.cfg.map_kind == "route"
-    learned = run_eval("AudioGoal", "av-nav", 2, split="test", seed=0, first=6, checkpoint=str(path))
+    learned = run_eval("AudioGoal", "av-nav", 2, split="test", seed=0, first=6)
     assert audiogoal_random_test9["sr"]["mean"] == 0 and learned["sr"]["mean"] == 1.0

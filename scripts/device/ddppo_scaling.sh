@@ -25,7 +25,7 @@ PY
 }
 run() {  # K device
   local K=$1 dv=$2 S=$SECONDS
-  timeout 90 python3 -m app.cli train --recipe ppo --init agents/checkpoints/av-nav_AudioGoal.pt --nproc $K --envs 2 \
+  timeout 90 python3 -m app.cli train --recipe ppo --init agents/checkpoints/av-nav_AudioGoal_oracle.pt --nproc $K --envs 2 \
     --frames $((K * 2 * 64 * 6)) --val-episodes 0 --seed 0 --device $dv --out /tmp/pp_${K}_$dv --json > /tmp/pp_${K}_$dv.out 2> /tmp/pp_${K}_$dv.err
   echo "ppo nproc $K $dv rc $?" >&2; tail -2 /tmp/pp_${K}_$dv.err | cut -c1-300 >&2
   summ $K $dv $((SECONDS - S)) /tmp/pp_${K}_$dv | tee -a $OUT/ddppo.jsonl
