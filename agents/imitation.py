@@ -36,9 +36,8 @@ import torch
 from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load_policy, load_train_state,
                            primitives_for, resolve_device, save_policy as save)
 
-# (MAP_KIND_SENSORS, MAP_SENSORS and SENSORS are re-exported: callers and tests import them from here)
-from agents.maps import (MAP_KIND_SENSORS, MAP_SENSORS, MAP_TASKS, ROUTE_TASKS, SENSORS,  # noqa: F401
-                         collect_sensors, ego_for, floor_shield, map_class, map_kind_for, sensors_for)
+from agents.maps import (MAP_TASKS, ROUTE_TASKS, collect_sensors, ego_for, floor_shield, map_class, map_kind_for,
+                         sensors_for)
 
 
 @dataclass

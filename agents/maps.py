@@ -37,10 +37,7 @@ def sensors_for(model) -> tuple:
 
 
 def map_class(kind: str):
-    """The map a ``map_kind`` names: "follow" :class:`agents.following.EgoMap` (speaker following, from the task's
-    floor plan), "nav" :class:`agents.navmap.NavEgoMap` (navigation, built from depth, sound and odometry), "sem"
-    :class:`agents.navmap.SemNavMap` (SemanticAudioNav: that and where the camera saw the category the ears name),
-    "route" :class:`agents.navmap.RouteNavMap` (that and the way sem-nav would go now)."""
+    """The map class a ``map_kind`` names (the module's docstring lists them)."""
     if kind == "follow":
         from agents.following import EgoMap
 

@@ -66,6 +66,7 @@ class NavEgoMap:
         if "depth" in obs:
             map_depth(self.occ, np.asarray(obs["depth"])[..., 0], p, yaw, self.fx, self.camera_height, self.RES,
                       floor=self.floor)
+        self.p, self.yaw = p, yaw  # this step's odometry pose (subclasses draw from it)
         i, j = self._cell(p)
         inside = 0 <= i < self.n and 0 <= j < self.n
         if inside:
@@ -226,10 +227,9 @@ class SemNavMap(NavEgoMap):
             self.action = self.teacher.act(obs, info)  # the label (``ego.action``), not taken here; it hears too
         else:
             self.ears.hear(obs["spectrogram"])
-        x, y, s, c = (float(v) for v in obs["pose"])
         if "depth" in obs:
             map_semantic(self.seen, np.asarray(obs["depth"])[..., 0], np.asarray(obs["semantic"])[..., 0], self.lut,
-                         (x, y), math.degrees(math.atan2(s, c)), self.fx, self.RES)
+                         self.p, self.yaw, self.fx, self.RES)
         k = self.category()
         r, q, ok = self._window
         if k < 0:
@@ -259,8 +259,7 @@ class RouteNavMap(SemNavMap):
         img = super().observe(obs, info)
         img[5] = 0
         t = self.teacher
-        x, y, s, c = (float(v) for v in obs["pose"])
-        p, yaw = np.array([x, y]), math.degrees(math.atan2(s, c))
+        p, yaw = self.p, self.yaw
         if t.mode == "face" and t.target is not None:
             cells = t.target[1]
             draw_route(img[5], p, yaw, [p, cells[int(np.argmin(np.linalg.norm(cells - p, axis=1)))]], self.RES)

@@ -101,7 +101,7 @@ def test_the_egocentric_map_draws_the_floor_and_the_person_where_they_are():
     robot is navigable; a person the camera sees is drawn within a pixel or two of where they stand (the median),
     and so is the belief's likeliest place in view; the scripted follower's route starts at the robot."""
     from agents.following import EgoMap, OracleFollower
-    from agents.imitation import MAP_SENSORS
+    from agents.maps import MAP_SENSORS
     from sonicverse_core.tasks import make_env
 
     env = make_env("SpeakerFollowing", split="val", sensors=MAP_SENSORS, width=64, height=64)
@@ -148,7 +148,7 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     Elsewhere `--map` (and `--map route` off the navigation tasks), and `--teacher scripted` without those maps, are
     one line and exit 2. PPO fine-tunes such a policy with its map and floor shield."""
     from agents.following import EgoMap
-    from agents.imitation import SENSORS, ego_for, floor_shield, sensors_for
+    from agents.maps import SENSORS, ego_for, floor_shield, sensors_for
     from agents.navmap import NavEgoMap, SemNavMap
     from agents.ppo import PPOConfig, train as train_ppo
     from app.tasks.run import run_task

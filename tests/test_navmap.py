@@ -94,7 +94,7 @@ def test_the_semantic_map_names_the_heard_category_and_marks_where_the_camera_sa
     predictor, its scores summed over the heard steps: right by the end of these episodes); channel 4 shows only
     cells within 0.6 m of an object of the category named at the time (drawn back onto the home as in the test above), and when the oracle has reached the goal it
     shows the goal's object within 1.5 m of the robot."""
-    from agents.imitation import MAP_KIND_SENSORS
+    from agents.maps import MAP_KIND_SENSORS
     from agents.navmap import SemNavMap
     from agents.scripted import OracleAgent
     from assets_manifest.soundbank import CATEGORIES

@@ -83,7 +83,7 @@ def test_the_goal_descriptor_keeps_the_heard_goal_while_the_robot_moves_in_silen
 def test_the_depth_projection_and_the_true_occupancy_agree_on_the_walls():
     """In a real home, facing a wall: the cells the depth image sees as obstacles are occupied in the scene's
     navigability grid, and the floor it sees in front is free."""
-    from agents.imitation import SENSORS
+    from agents.maps import SENSORS
     from sonicverse_core.tasks import make_env
 
     env = make_env("AudioGoal", split="train", sensors=SENSORS, width=64, height=64)

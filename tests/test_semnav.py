@@ -82,7 +82,8 @@ def test_the_route_map_draws_the_way_sem_nav_would_go():
     shows its route from the robot. Drawn back onto the world through the robot's pose, every lit pixel lies within
     a pixel's diagonal of the polyline sem-nav drives (a mirrored or rotated image fails), at 128 while it explores
     and 255 once it drives to a sighting. A policy trained with it records the kind and reads sem-nav's sensors."""
-    from agents.imitation import MAP_KIND_SENSORS, ImitationConfig, build_policy, ego_for, sensors_for
+    from agents.imitation import ImitationConfig, build_policy
+    from agents.maps import MAP_KIND_SENSORS, ego_for, sensors_for
     from agents.navmap import RouteNavMap
     from sonicverse_core.tasks import make_env
 
