@@ -38,6 +38,7 @@ def test_training_writes_a_checkpoint_and_a_log(tmp_path):
         load(tmp_path / "none.pt")
 
 
+@pytest.mark.slow  # 12 s: the model card's finding about the shipped file; `make test-slow` checks it
 def test_the_shipped_localiser_is_at_chance_on_steady_sounds_in_reverberant_homes():
     """The model card's finding, on test homes (never trained on), headings uncorrelated with the sound: one step of
     a steady sound gives a median bearing error near chance (90 degrees). If this fails because the error fell, the
