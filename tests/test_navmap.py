@@ -4,6 +4,20 @@ sem-nav, is tested with sem-nav in tests/test_semnav.py.)"""
 import numpy as np
 
 
+def _pixels(S: int, res: float):
+    """Metres ahead of and to the left of the robot of each pixel of an S x S egocentric map of ``res`` m pixels, as
+    the maps' docstrings say (the robot at the centre facing the top, its left to the left): derived here, not taken
+    from the code under test."""
+    u = (np.arange(S) + 0.5 - S / 2) * res
+    return -np.repeat(u[:, None], S, 1), -np.repeat(u[None, :], S, 0)
+
+
+def _on_home(pose, fwd, left) -> np.ndarray:
+    """(n, 2): the home's x, y of points ``fwd`` m ahead of and ``left`` m to the left of a robot at ``pose``."""
+    a = np.radians(pose[2])
+    return np.stack([pose[0] + np.cos(a) * fwd - np.sin(a) * left, pose[1] + np.sin(a) * fwd + np.cos(a) * left], -1)
+
+
 def test_the_navigators_map_draws_what_depth_saw_and_is_louder_nearer_the_sound():
     """NavEgoMap (`train --map` on AudioGoal): drawn back onto the home as the docstring says (the robot at the
     centre facing the top, its left to the left, pixels of RES m), the obstacles depth saw lie off the navigable
@@ -17,8 +31,7 @@ def test_the_navigators_map_draws_what_depth_saw_and_is_louder_nearer_the_sound(
 
     env = make_env("AudioGoal", split="val", sensors=("depth", "spectrogram", "pose"), width=64, height=64)
     S, c = NavEgoMap.SIZE, NavEgoMap.SIZE // 2
-    u = (np.arange(S) + 0.5 - S / 2) * NavEgoMap.RES
-    fwd, left = -np.repeat(u[:, None], S, 1), -np.repeat(u[None, :], S, 0)
+    fwd, left = _pixels(S, NavEgoMap.RES)
     rhos = []
     try:
         for seed in (1, 2, 3):
@@ -35,12 +48,10 @@ def test_the_navigators_map_draws_what_depth_saw_and_is_louder_nearer_the_sound(
                 img = m.observe(obs, info)
                 assert img.shape == (NavEgoMap.CHANNELS, S, S) and img.dtype == np.uint8
                 assert img[3, c - 2:c + 2, c - 2:c + 2].max() >= 250  # the robot stands on its track
-                a = np.radians(w.pose[2])
-                wx = w.pose[0] + np.cos(a) * fwd - np.sin(a) * left
-                wy = w.pose[1] + np.sin(a) * fwd + np.cos(a) * left
+                home = _on_home(w.pose, fwd, left)
                 for k, ch in enumerate((0, 1)):
                     sel = img[ch] > 0
-                    pts = np.stack([wx[sel], wy[sel]], 1)
+                    pts = home[sel]
                     if ch == 0:
                         good = ~g.is_navigable(pts, main_only=False)
                     else:
@@ -102,8 +113,7 @@ def test_the_semantic_map_names_the_heard_category_and_marks_where_the_camera_sa
 
     env = make_env("SemanticAudioNav", split="val", sensors=MAP_KIND_SENSORS["sem"], width=64, height=64)
     S = SemNavMap.SIZE
-    u = (np.arange(S) + 0.5 - S / 2) * SemNavMap.RES
-    fwd, left = -np.repeat(u[:, None], S, 1), -np.repeat(u[None, :], S, 0)
+    fwd, left = _pixels(S, SemNavMap.RES)
     try:
         for seed in (2, 3):  # (seed 1's goal, a shelf 1.5 m away, is out of the camera's view at the end)
             obs, info = env.reset(seed=seed)
@@ -118,12 +128,10 @@ def test_the_semantic_map_names_the_heard_category_and_marks_where_the_camera_sa
             for _ in range(500):
                 img = m.observe(obs, info)
                 assert img.shape == (SemNavMap.CHANNELS, S, S)
-                a = np.radians(w.pose[2])
                 sel = img[4] > 0
                 if sel.any():  # every lit pixel at an object of the category named now
                     b = boxes[CATEGORIES[m.category()]]
-                    pts = np.stack([w.pose[0] + np.cos(a) * fwd[sel] - np.sin(a) * left[sel],
-                                    w.pose[1] + np.sin(a) * fwd[sel] + np.cos(a) * left[sel]], 1)
+                    pts = _on_home(w.pose, fwd[sel], left[sel])
                     gap = np.maximum(np.maximum(b[None, :, 0] - pts[:, None], pts[:, None] - b[None, :, 1]), 0)
                     assert np.all(np.linalg.norm(gap, axis=2).min(1) <= 0.6)
                 lit += sel.sum()
