@@ -65,7 +65,7 @@ class ImitationConfig:
     device: str = "cpu"  # where the model trains and acts: cpu, cuda or auto (resolve_device); not part of the recipe
     homes: int = 0  # train homes episodes are drawn from: the first N seeds of the train split (0: the split's
     # default, DEFAULT_HOMES["train"] = 16)
-    egomap: bool = False  # av-nav: an egocentric map input (MAP_TASKS: EgoMap when following, else NavEgoMap)
+    egomap: bool = False  # an egocentric map input (MAP_TASKS: EgoMap when following, else NavEgoMap; av-nav, savi, multitask)
     route: bool = False  # with egomap on ROUTE_TASKS: RouteNavMap, sem-nav's route drawn in (train --map route)
     teacher: str = "oracle"  # whose actions are the labels: the privileged "oracle", or (speaker following with
     # the map) the "scripted" follower, or (SemanticAudioNav with the map) sem-nav, which act on what the map
@@ -441,10 +441,13 @@ def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
     from agents.savi import SAVi, SAViConfig
     from assets_manifest.soundbank import CATEGORIES
 
+    kind = map_kind_for(cfg)
+    M = map_class(kind)
     return SAVi(SAViConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec_shape, action_dim=action_dim,
                            primitives=prims, memory=cfg.memory,
                            n_categories=0 if cfg.task in EXPERTS else len(CATEGORIES),
-                           occupancy=cfg.occupancy if cfg.agent == "multitask" else 0))
+                           occupancy=cfg.occupancy if cfg.agent == "multitask" else 0,
+                           map_shape=(M.CHANNELS, M.SIZE, M.SIZE) if cfg.egomap else (), map_kind=kind))
 
 
 def run_episode(model, env, expert, ego, cfg: ImitationConfig, rng: np.random.Generator, seed: int, beta: float,
@@ -516,14 +519,14 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
         raise ConfigError(f"head must be discrete or continuous, got {cfg.head!r}")
     if cfg.agent not in ("av-nav", "savi", "multitask"):
         raise ConfigError(f"agent must be av-nav, savi or multitask, got {cfg.agent!r}")
-    if cfg.egomap and (cfg.agent != "av-nav" or cfg.task not in MAP_TASKS):
-        raise ConfigError(f"--map is for av-nav on {', '.join(MAP_TASKS)}")
+    if cfg.egomap and cfg.task not in MAP_TASKS:
+        raise ConfigError(f"--map is for {', '.join(MAP_TASKS)}")
     if cfg.learner not in ("greedy", "drawn"):
         raise ConfigError(f"learner must be greedy or drawn, got {cfg.learner!r}")
     if cfg.teacher not in ("oracle", "scripted"):
         raise ConfigError(f"teacher must be oracle or scripted, got {cfg.teacher!r}")
     if cfg.route and not (cfg.egomap and cfg.task in ROUTE_TASKS):
-        raise ConfigError(f"--map route is for av-nav on {' and '.join(ROUTE_TASKS)}")
+        raise ConfigError(f"--map route is for {' and '.join(ROUTE_TASKS)}")
     if cfg.teacher == "scripted" and not (map_kind_for(cfg) in ("follow", "sem", "route") if cfg.egomap
                                           else cfg.task in ("AudioGoal", "SemanticAudioNav")):
         raise ConfigError("--teacher scripted is for --map on SpeakerFollowing (the scripted follower draws the map) "

@@ -151,6 +151,8 @@ class AVNav(ActorCritic):
     ``cfg.primitives`` (discrete head); :meth:`act` turns either into wheel velocities. ``starts`` marks each
     episode's first step: the GRU's state is zeroed there."""
 
+    arch = "av-nav"  # the checkpoint's and the agent's name (as SAVi.arch)
+
     def __init__(self, cfg: AVNavConfig = AVNavConfig()):
         super().__init__()
         self.cfg = cfg

@@ -16,6 +16,9 @@ anticipation), in torch, with the AV-Nav policy's interface (:class:`agents.mode
   far back as the window, never across an episode's start; ALiBi's linear recency bias per head), and a decoder
   queried by the current token and the goal descriptor attends to the encoded memory; the actor-critic reads the
   decoder's output.
+* **Map** (``map_shape``: ``sonicverse train --map``, as AV-Nav's): an egocentric map (:mod:`agents.maps` names
+  which) has its own CNN, whose features join depth, audio and pose in each step's token, so the scene memory holds
+  the map as it was at each remembered step.
 * **Two stages** (SAVi's): the first third of the imitation runs with a memory of one step (each step sees only
   itself) and trains everything; then the goal predictor is frozen and the memory grows to ``memory`` steps (SAVi
   also freezes the observation encoders: see :meth:`SAVi.stage`).
@@ -62,6 +65,8 @@ class SAViConfig:
     primitives: tuple = ()
     aux_goal: bool = True  # the goal predictor's location loss (always on in SAVi)
     occupancy: int = 0  # V: the multi-task model's occupancy map (0: SAVi)
+    map_shape: tuple = ()  # (C, H, W) of an egocentric map input (``train --map``), () for none: AVNavConfig's
+    map_kind: str = "follow"  # which map (agents.maps): as AVNavConfig's
     hfov: float = 90.0  # the depth camera's (for the projection)
     camera_height: float = 0.55
 
@@ -75,7 +80,9 @@ class SAVi(ActorCritic):
         h, d = cfg.hidden, cfg.d_model
         self.depth = _cnn(1, cfg.depth_hw, h) if cfg.depth_hw else None
         self.audio = _cnn(cfg.spec_shape[0], cfg.spec_shape[1:], h, k=(5, 3, 3), s=(2, 2, 1))
-        self.token = nn.Linear((2 if cfg.depth_hw else 1) * h + cfg.pose_dim, d)
+        # the egocentric map (``--map``; agents.maps): a third CNN, as AV-Nav's, its features part of each token
+        self.egomap = _cnn(cfg.map_shape[0], cfg.map_shape[1:], h, k=(4, 3, 3), s=(2, 2, 1)) if cfg.map_shape else None
+        self.token = nn.Linear(((2 if cfg.depth_hw else 1) + (1 if cfg.map_shape else 0)) * h + cfg.pose_dim, d)
         # the goal predictor: its own audio encoder (SAVi's is a separate network), the location and category heads
         self.goal_net = _cnn(cfg.spec_shape[0], cfg.spec_shape[1:], h, k=(5, 3, 3), s=(2, 2, 1))
         self.goal_audio = nn.Linear(h, 3)
@@ -115,14 +122,19 @@ class SAVi(ActorCritic):
         return torch.cat([mem.transpose(0, 1).reshape(B, -1), valid.T.float(), est, cat, have], 1)[None]
 
     # --- the model --------------------------------------------------------------------------------------------
-    def encode(self, depth, spec, pose):
-        """(observation tokens (T, B, d), the goal predictor's audio features (T, B, H))."""
+    def encode(self, depth, spec, pose, egomap=None):
+        """(observation tokens (T, B, d), the goal predictor's audio features (T, B, H)); ``egomap`` (T, B, C, H, W)
+        in [0, 1], the map input of a model with ``cfg.map_shape``."""
         T, B = spec.shape[:2]
         x = (spec.reshape(T * B, *spec.shape[2:]).float() / SPEC_MAX).clamp(0, 1)
         parts = [self.audio(x), pose.reshape(T * B, -1).float()]
         if self.depth is not None:
             d = (depth.reshape(T * B, *depth.shape[2:]).permute(0, 3, 1, 2).float() / DEPTH_MAX).clamp(0, 1)
             parts.insert(0, self.depth(d))
+        if self.egomap is not None:
+            if egomap is None:
+                raise ValueError("this policy reads an egocentric map: give egomap")
+            parts.append(self.egomap(egomap.reshape(T * B, *egomap.shape[2:]).float()))
         return self.token(torch.cat(parts, 1)).reshape(T, B, -1), self.goal_net(x).reshape(T, B, -1)
 
     def descriptor(self, a, spec, pose, est, cat, have, starts):
@@ -156,9 +168,9 @@ class SAVi(ActorCritic):
                 out.append(torch.cat([rel, cat, have], 1))
         return torch.stack(out), est, cat, have
 
-    def features(self, depth, spec, pose, hidden, starts):
+    def features(self, depth, spec, pose, hidden, starts, egomap=None):
         """(state features (T, B, d), audio features (T, B, H), the next state)."""
-        x, a = self.encode(depth, spec, pose)
+        x, a = self.encode(depth, spec, pose, egomap)
         T, B, d = x.shape
         mem, valid, est, cat, have = self._unpack(hidden)
         starts = starts.float()

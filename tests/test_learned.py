@@ -238,18 +238,21 @@ def test_the_oracle_ensemble_for_audio_goal_loads_and_beats_random(audiogoal_ran
     assert learned["sr"]["mean"] >= 1 / 4
 
 
-def test_the_shipped_semantic_audio_nav_checkpoint_loads_and_beats_random():
-    """The shipped AV-Nav for SemanticAudioNav (since session 44 it reads sem-nav's route in its map: `--map route`)
-    on test episodes 4-5 of seed 0: it stops at the object in both (and in 5 of the first 8; 35.0% of 200 in the
-    README), random (auto-stop) in neither."""
+@pytest.mark.parametrize("agent,first", [("av-nav", 4), ("savi", 6)])
+def test_the_shipped_semantic_audio_nav_checkpoints_load_and_beat_random(agent, first):
+    """The shipped AV-Nav and SAVi for SemanticAudioNav (AV-Nav since session 44, SAVi since session 47; both read
+    sem-nav's route in their map: `--map route`) on two test episodes of seed 0 where each stops at the object
+    (AV-Nav: 4-5, and 5 of the first 8, 35.0% of 200 in the README; SAVi: 6-7, 30.5% of 200), random (auto-stop) in
+    neither."""
     from app.tasks.evaluate import run_eval
     from agents.learned import default_checkpoint
+    from agents.models import load_policy
 
-    model, meta = load(default_checkpoint("av-nav", "SemanticAudioNav"))
-    assert meta["config"]["task"] == "SemanticAudioNav" and model.cfg.action_dim == 3
+    model, meta = load_policy(default_checkpoint(agent, "SemanticAudioNav"))
+    assert meta["config"]["task"] == "SemanticAudioNav" and model.cfg.action_dim == 3 and model.arch == agent
     assert model.cfg.map_kind == "route"
-    learned = run_eval("SemanticAudioNav", "av-nav", 2, split="test", seed=0, first=4)
-    rnd = run_eval("SemanticAudioNav", "random", 2, split="test", seed=0, first=4)
+    learned = run_eval("SemanticAudioNav", agent, 2, split="test", seed=0, first=first)
+    rnd = run_eval("SemanticAudioNav", "random", 2, split="test", seed=0, first=first)
     assert learned["sr"]["mean"] >= 1 / 2 > rnd["sr"]["mean"]
 
 

@@ -186,8 +186,8 @@ def test_a_policy_with_a_map_trains_plays_and_is_refused_where_it_does_not_belon
     res = run_task("speaker-following", "av-nav", 1, seed=0, checkpoint=str(tmp_path / "m" / "model.pt"),
                    env_kwargs={"max_steps": 30})
     assert res["episodes"] == 1 and res["time_s"]["mean"] <= 3.0 + 1e-9
-    r = cli("train", "--agent", "savi", "--task", "AudioGoal", "--map", "--frames", "100", "--out", str(tmp_path / "x"),
-            check_rc=2)
+    r = cli("train", "--agent", "sound-localizer", "--task", "AudioGoal", "--map", "--frames", "100", "--out",
+            str(tmp_path / "x"), check_rc=2)  # the navigators read maps (av-nav, savi, multitask), not the localiser
     assert "--map is for" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     r = cli("train", "--task", "AudioGoal", "--map", "--teacher", "scripted", "--frames", "100", "--out",
             str(tmp_path / "y"), check_rc=2)

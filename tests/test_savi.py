@@ -50,6 +50,33 @@ def test_the_scene_memory_stepped_equals_one_call_and_forgets_before_an_episode_
     assert torch.allclose(a[6:], b[6:], atol=1e-5) and not torch.allclose(a[5], b[5])
 
 
+def test_savi_with_a_map_input_reads_it_from_its_step_on_and_asks_for_it():
+    """``SAViConfig.map_shape`` (``train --map``): the egocentric map is part of each step's token, so changing the map
+    at step t changes the output from t on and nothing before; stepping one step at a time equals one call; a model
+    with a map input refuses to act without one."""
+    cfg = SAViConfig(primitives=primitives_for(3), memory=4, map_shape=(6, 32, 32), map_kind="route")
+    torch.manual_seed(0)
+    m = SAVi(cfg).eval()
+    T, B = 7, 2
+    d, s, p = _inputs(T, B, cfg)
+    mp = torch.rand(T, B, 6, 32, 32, generator=torch.Generator().manual_seed(1))
+    starts = torch.zeros(T, B)
+    starts[0] = 1
+    with torch.no_grad():
+        a, _, _ = m(d, s, p, m.initial_state(B), starts, egomap=mp)
+        mp2 = mp.clone()
+        mp2[3] = 0.0
+        b, _, _ = m(d, s, p, m.initial_state(B), starts, egomap=mp2)
+        hs, steps = m.initial_state(B), []
+        for t in range(T):
+            o, _, hs = m(d[t:t + 1], s[t:t + 1], p[t:t + 1], hs, starts[t:t + 1], egomap=mp[t:t + 1])
+            steps.append(o)
+    assert torch.allclose(a[:3], b[:3], atol=1e-6) and not torch.allclose(a[3], b[3], atol=1e-3)
+    assert torch.allclose(a, torch.cat(steps), atol=1e-4)
+    with pytest.raises(ValueError, match="egocentric map"):
+        m(d, s, p, m.initial_state(B), starts)
+
+
 def test_the_goal_descriptor_keeps_the_heard_goal_while_the_robot_moves_in_silence():
     """Heard at the start: the goal 2 m straight ahead. Then silence while the robot drives 1 m forward and turns 90
     degrees left: the descriptor must put the goal 1 m away, on the robot's right (bearing -90 degrees)."""
@@ -141,8 +168,10 @@ def test_a_short_imitation_run_trains_checkpoints_and_plays(tmp_path, agent):
     from agents.imitation import ImitationConfig, train
     from app.tasks.evaluate import run_eval
 
+    # SAVi reads sem-nav's route (train --agent savi --map route --teacher scripted), the multi-task model no map
+    route = {"egomap": True, "route": True, "teacher": "scripted", "learner": "drawn"} if agent == "savi" else {}
     cfg = ImitationConfig(task="SemanticAudioNav", agent=agent, frames=120, iterations=3, val_episodes=0, epochs=1,
-                          seed=2, rollout_steps=40, memory=4, occupancy=16)
+                          seed=2, rollout_steps=40, memory=4, occupancy=16, **route)
     train(cfg, tmp_path / "run")
     rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
     assert len(rows) == 3 and float(rows[-1]["category_loss"]) > 0
@@ -150,6 +179,8 @@ def test_a_short_imitation_run_trains_checkpoints_and_plays(tmp_path, agent):
     model, meta = load_policy(tmp_path / "run" / "model.pt")
     assert isinstance(model, SAVi) and model.arch == agent and meta["config"]["agent"] == agent
     assert (model.occ is not None) == (agent == "multitask")
+    assert model.cfg.map_shape == ((6, 32, 32) if route else ()) and (model.egomap is not None) == bool(route)
+    assert not route or model.cfg.map_kind == "route"
     assert model.window == 4 and meta["window"] == 4  # the second stage's memory (iterations 1-2)
     from agents.models import save_policy
 

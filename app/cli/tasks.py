@@ -50,18 +50,19 @@ def cmd_train(a) -> int:
         from sonicverse_core.errors import ConfigError
 
         raise ConfigError("--temperature is an ensemble's acting setting: give it with --ensemble")
-    if a.teacher != "oracle" and not (a.recipe == "dagger" and a.agent == "av-nav" and a.task in (
+    policy = a.agent in ("av-nav", "savi", "multitask")  # the learned navigators (not the sound localiser)
+    if a.teacher != "oracle" and not (a.recipe == "dagger" and policy and a.task in (
             ("AudioGoal", "SemanticAudioNav") if a.map == "route" else
             ("SpeakerFollowing", "SemanticAudioNav") if a.map else ("AudioGoal", "SemanticAudioNav"))):
-        raise ConfigError("--teacher scripted is for --recipe dagger --agent av-nav: with --map on "
+        raise ConfigError("--teacher scripted is for --recipe dagger --agent av-nav|savi|multitask: with --map on "
                           "SpeakerFollowing|SemanticAudioNav, --map route or no map on AudioGoal|SemanticAudioNav "
                           "(sem-nav)")
     if a.learner != "greedy" and a.recipe != "dagger":
         raise ConfigError("--learner is for --recipe dagger (PPO's learner always draws its actions)")
-    if a.map and (a.recipe != "dagger" or a.agent != "av-nav"
+    if a.map and (a.recipe != "dagger" or not policy
                   or a.task not in ("SpeakerFollowing", "AudioGoal", "SemanticAudioNav")):
-        raise ConfigError("--map is for --recipe dagger --agent av-nav --task SpeakerFollowing|AudioGoal|"
-                          "SemanticAudioNav")
+        raise ConfigError("--map is for --recipe dagger --agent av-nav|savi|multitask --task SpeakerFollowing|"
+                          "AudioGoal|SemanticAudioNav")
     if a.resume and a.recipe == "ppo":
         raise ConfigError("--resume is for --recipe dagger (a PPO run starts from --init)")
     if a.recipe == "ppo" and (a.jobs > 1 or a.dataset_frames != 60_000):
@@ -443,7 +444,7 @@ def add_task_commands(sub, bench_sub) -> None:
     t.add_argument("--homes", type=A.count(1, 5000), default=None,
                    help="draw training episodes from the first N train homes (default: 16)")
     t.add_argument("--map", nargs="?", const="task", choices=("task", "route"), default=None,
-                   help="av-nav: read an egocentric map; on "
+                   help="av-nav, savi, multitask: read an egocentric map; on "
                    "SpeakerFollowing the floor plan, the scripted follower's belief of where the person is, who the "
                    "camera saw, its route; on AudioGoal what the robot mapped itself: obstacles and floor from depth, "
                    "how loud the sound was where it stood, its track; on SemanticAudioNav that and where the "
