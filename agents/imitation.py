@@ -432,22 +432,19 @@ def eval_episodes(model, env, ego, keys: dict, indices, seed: int) -> list[dict]
 def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
     """The untrained policy ``cfg.agent`` names, for the env's spectrogram shape and action size."""
     prims = primitives_for(action_dim) if cfg.head == "discrete" else ()
+    kind = map_kind_for(cfg)
+    M = map_class(kind)
+    shape = (M.CHANNELS, M.SIZE, M.SIZE) if cfg.egomap else ()
     if cfg.agent == "av-nav":
-        kind = map_kind_for(cfg)
-        M = map_class(kind)
-        shape = (M.CHANNELS, M.SIZE, M.SIZE) if cfg.egomap else ()
         return AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec_shape, action_dim=action_dim,
                                  primitives=prims, aux_goal=cfg.aux_weight > 0, map_shape=shape, map_kind=kind))
     from agents.savi import SAVi, SAViConfig
     from assets_manifest.soundbank import CATEGORIES
 
-    kind = map_kind_for(cfg)
-    M = map_class(kind)
     return SAVi(SAViConfig(depth_hw=(cfg.size, cfg.size), spec_shape=spec_shape, action_dim=action_dim,
                            primitives=prims, memory=cfg.memory,
                            n_categories=0 if cfg.task in EXPERTS else len(CATEGORIES),
-                           occupancy=cfg.occupancy if cfg.agent == "multitask" else 0,
-                           map_shape=(M.CHANNELS, M.SIZE, M.SIZE) if cfg.egomap else (), map_kind=kind))
+                           occupancy=cfg.occupancy if cfg.agent == "multitask" else 0, map_shape=shape, map_kind=kind))
 
 
 def run_episode(model, env, expert, ego, cfg: ImitationConfig, rng: np.random.Generator, seed: int, beta: float,
