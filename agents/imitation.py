@@ -65,7 +65,8 @@ class ImitationConfig:
     device: str = "cpu"  # where the model trains and acts: cpu, cuda or auto (resolve_device); not part of the recipe
     homes: int = 0  # train homes episodes are drawn from: the first N seeds of the train split (0: the split's
     # default, DEFAULT_HOMES["train"] = 16)
-    egomap: bool = False  # an egocentric map input (MAP_TASKS: EgoMap when following, else NavEgoMap; av-nav, savi, multitask)
+    egomap: bool = False  # an egocentric map input, any of the three policies (MAP_TASKS: EgoMap when following,
+    # else NavEgoMap)
     route: bool = False  # with egomap on ROUTE_TASKS: RouteNavMap, sem-nav's route drawn in (train --map route)
     teacher: str = "oracle"  # whose actions are the labels: the privileged "oracle", or (speaker following with
     # the map) the "scripted" follower, or (SemanticAudioNav with the map) sem-nav, which act on what the map
