@@ -210,6 +210,7 @@ def _number(v: str):
 def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint, report, bar: bool = False) -> None:
     """Play the episodes ``indices`` in one env, calling ``report(i, row)`` (the CSV row) after each."""
     from agents import make_agent
+    from sonicverse_core.errors import check_stopped
     from sonicverse_core.progress import progress
 
     env = make_env(task, split=split, sounds=sounds, **kw)
@@ -226,6 +227,7 @@ def _play(indices, task, agent, split, sounds, seed, kw, maps, video, checkpoint
             frames, sound = [], []
             total, done = 0.0, False
             while not done:
+                check_stopped()  # a SIGTERM whose raise something swallowed (a cache's except Exception) stops here
                 a = ag.act(obs, info)
                 obs, r, term, trunc, info = env.step(a)
                 total += r
