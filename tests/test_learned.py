@@ -238,8 +238,8 @@ def test_the_oracle_ensemble_for_audio_goal_loads_and_beats_random(audiogoal_ran
     assert learned["sr"]["mean"] >= 1 / 4
 
 
-@pytest.mark.parametrize("agent,first,episodes", [("av-nav", 4, 1), ("savi", 6, 1), ("multitask", 4, 1)])
-def test_the_shipped_semantic_audio_nav_checkpoints_load_and_beat_random(agent, first, episodes):
+@pytest.mark.parametrize("agent,first", [("av-nav", 4), ("savi", 6), ("multitask", 4)])
+def test_the_shipped_semantic_audio_nav_checkpoints_load_and_beat_random(agent, first):
     """The shipped AV-Nav, SAVi and multi-task policies for SemanticAudioNav (AV-Nav since session 44, the others
     since session 47; all read sem-nav's route in their map: `--map route`) on a test episode of seed 0 where each
     stops at the object (AV-Nav: 4 in 217 steps, and 5 of the first 8, 35.0% of 200 in the README; SAVi: 6 in 167
@@ -252,8 +252,8 @@ def test_the_shipped_semantic_audio_nav_checkpoints_load_and_beat_random(agent, 
     model, meta = load_policy(default_checkpoint(agent, "SemanticAudioNav"))
     assert meta["config"]["task"] == "SemanticAudioNav" and model.cfg.action_dim == 3 and model.arch == agent
     assert model.cfg.map_kind == "route"
-    learned = run_eval("SemanticAudioNav", agent, episodes, split="test", seed=0, first=first)
-    rnd = run_eval("SemanticAudioNav", "random", episodes, split="test", seed=0, first=first)
+    learned = run_eval("SemanticAudioNav", agent, 1, split="test", seed=0, first=first)
+    rnd = run_eval("SemanticAudioNav", "random", 1, split="test", seed=0, first=first)
     assert learned["sr"]["mean"] == 1 > rnd["sr"]["mean"]
 
 

@@ -222,18 +222,18 @@ def test_the_goal_predictor_pretrains_on_audible_frames_and_tells_categories_apa
     assert out["audible_frames"] == 30 * 12 and out["category_acc_test"] >= 0.9
 
 
-@pytest.mark.parametrize("agent,first,episodes", [("savi", 6, 1), ("multitask", 1, 1)])
-def test_the_shipped_checkpoints_load_and_beat_random(agent, first, episodes, audiogoal_random_test9):
+@pytest.mark.parametrize("agent,first", [("savi", 6), ("multitask", 1)])
+def test_the_shipped_checkpoints_load_and_beat_random(agent, first, audiogoal_random_test9):
     """The shipped SAVi and multi-task AudioGoal policies on a test episode of seed 0 where each is known to succeed
-    (session 48: SAVi in episode 6 in 66 steps, not in 7 or 8, 26.0% of 200 in the README; the multi-task model in
-    episode 1 in 90 steps, not in 2). Random reaches none of the first 9 here and none of the README's 200. One
-    episode each: a failure plays all 500 steps, and the suite's budget is tight."""
+    (session 48: SAVi in episode 6 in 66 steps, not in 7 or 8, 22.5% of 200 in the README's table; the multi-task
+    model in episode 1 in 90 steps, not in 2). Random reaches none of the first 9 here and none of the README's 200.
+    One episode each: a failure plays all 500 steps, and the suite's budget is tight."""
     from agents.learned import default_checkpoint
     from app.tasks.evaluate import run_eval
 
     model, meta = load_policy(default_checkpoint(agent, "AudioGoal"))
     assert model.arch == agent and meta["recipe"] == "dagger" and sum(p.numel() for p in model.parameters()) < 6e6
-    learned = run_eval("AudioGoal", agent, episodes, split="test", seed=0, first=first)
+    learned = run_eval("AudioGoal", agent, 1, split="test", seed=0, first=first)
     rnd = audiogoal_random_test9
     assert rnd["sr"]["n"] == 9 and rnd["sr"]["mean"] == 0
-    assert learned["sr"]["mean"] >= 1 / episodes
+    assert learned["sr"]["mean"] == 1
