@@ -166,6 +166,30 @@ def test_segment_motion():
     np.testing.assert_allclose(out, ref)
 
 
+def test_segments_meet_boxes():
+    """The compiled slab test agrees with its NumPy twin (``occlusion.segment_meets_boxes``) on random segments and
+    boxes, on segments along an axis (a zero direction component), on boxes the segment ends inside or stops short of,
+    and answers what a hand check says."""
+    from sonicverse_core.acoustics.occlusion import segment_meets_boxes
+
+    a, lis = RNG.uniform(-3, 3, size=(400, 3)), RNG.uniform(-1, 1, size=3)
+    a[:50, 1:] = lis[1:]  # along x through the listener's y and z
+    c, h = RNG.uniform(-3, 3, size=(30, 3)), RNG.uniform(0.05, 0.6, size=(30, 3))
+    lo, hi = c - h, c + h
+    out = np.empty(len(a), bool)
+    K.segments_meet_boxes(a, lis, lo, hi, out)
+    ref = segment_meets_boxes(a, np.broadcast_to(lis, a.shape), lo, hi)
+    np.testing.assert_array_equal(out, ref)
+    assert 0.1 < out.mean() < 0.9  # both answers occur
+    box = np.array([[1.0, -0.5, -0.5]]), np.array([[2.0, 0.5, 0.5]])
+    ends = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    for end, want in ((np.array([3.0, 0.0, 0.0]), [True, True, True, False]),
+                      (np.array([0.9, 0.0, 0.0]), [False, False, True, False])):
+        got = np.empty(4, bool)
+        K.segments_meet_boxes(ends, end, *box, got)
+        assert got.tolist() == want, (end, got)
+
+
 def test_late_send():
     n, B, H = 3, 32, 4096
     ring = RNG.normal(size=(n, H)).astype(np.float32)

@@ -542,3 +542,29 @@ def count_over(x, tol):
             c += 1
     return c
 
+
+
+@njit(**_opts)
+def segments_meet_boxes(a, b, lo, hi, out):
+    """out[i] = does segment a[i] -> b (a (n, 3), b (3,): the listener, shared) meet any box [lo[j], hi[j]] ((m, 3)
+    each)? The slab test of ``occlusion.segment_meets_boxes`` (its NumPy twin), without its (n, m, 3) temporaries:
+    the occlusion recast runs it over every part's box in the blocks that cast."""
+    for i in range(a.shape[0]):
+        hit = False
+        for j in range(lo.shape[0]):
+            tmin, tmax = -np.inf, np.inf
+            for k in range(3):
+                d = b[k] - a[i, k]
+                if abs(d) < 1e-12:
+                    d = 1e-12
+                inv = 1.0 / d
+                t0 = (lo[j, k] - a[i, k]) * inv
+                t1 = (hi[j, k] - a[i, k]) * inv
+                if t0 > t1:
+                    t0, t1 = t1, t0
+                tmin = max(tmin, t0)
+                tmax = min(tmax, t1)
+            if tmax >= max(tmin, 0.0) and tmin <= 1.0:
+                hit = True
+                break
+        out[i] = hit

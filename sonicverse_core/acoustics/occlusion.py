@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sonicverse_core.acoustics.kernels import count_over, segment_motion
+from sonicverse_core.acoustics.kernels import count_over, segment_motion, segments_meet_boxes
 from sonicverse_core.acoustics.state import PerSource
 from sonicverse_core.scene.materials import BANDS, material_arrays
 
@@ -35,7 +35,8 @@ def may_occlude(scene) -> bool:
 
 
 def segment_meets_boxes(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(n,) bool: does segment a->b meet any of the boxes [lo, hi] (m, 3)? (slab test)"""
+    """(n,) bool: does segment a->b meet any of the boxes [lo, hi] (m, 3)? (slab test; the twin of the compiled
+    ``kernels.segments_meet_boxes``, which the recast uses)"""
     d = (b - a)[:, None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / np.where(np.abs(d) < 1e-12, 1e-12, d)
@@ -191,14 +192,18 @@ class Occlusion:
             if dirty is None:
                 todo[:] = True
             elif len(dirty[0]):
-                todo |= segment_meets_boxes(pos, np.broadcast_to(lis, pos.shape), *dirty)
+                met = np.empty(n, bool)
+                segments_meet_boxes(pos, np.asarray(lis, np.float64), *dirty, met)
+                todo |= met
             st.scene_version = version
         if not np.any(todo):
             return
         idx = np.flatnonzero(todo)
         a, b = pos[idx], np.broadcast_to(lis, (len(idx), 3))
         lo, hi = self._boxes()
-        near = segment_meets_boxes(a, b, lo, hi) if len(lo) else np.zeros(len(idx), bool)
+        near = np.zeros(len(idx), bool)
+        if len(lo):
+            segments_meet_boxes(a, np.asarray(lis, np.float64), lo, hi, near)
         cast = np.flatnonzero(near & (np.linalg.norm(b - a, axis=1) > 1e-6))
         self.stats["occlusion_rays"] += len(cast)
         self.stats["occlusion_skipped"] += len(idx) - len(cast)

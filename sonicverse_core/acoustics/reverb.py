@@ -205,6 +205,17 @@ class PortalEars:
 ITD_LINE_S = 0.001  # s: the directional share's delay line (Woodworth's largest ITD is 0.66 ms)
 
 
+@lru_cache(maxsize=None)
+def _band_bins(B: int, sample_rate: int) -> np.ndarray:
+    """(9, B + 1): each band's weight over the bins of a 2B-point FFT (linear in log frequency between band centres,
+    flat beyond the end bands); read-only, shared by every reverb of that block size and rate."""
+    f = np.fft.rfftfreq(2 * B, 1 / sample_rate)
+    lf = np.log2(np.maximum(f, BANDS[0]))
+    bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
+    bins.flags.writeable = False
+    return bins
+
+
 class ConvolutionReverb:
     """Uniformly partitioned overlap-save convolution (partitions of one block) with a synthesised tail per probe;
     the outputs of the probes around the listener are mixed with ramped weights. Exact per-band decay, no
@@ -251,7 +262,7 @@ class ConvolutionReverb:
             self._dlast = np.zeros(2, np.int64)
         self._live = np.zeros(groups, bool)
         self._curves = np.ones((groups, self.nf), np.float32)
-        self._shaped, self._shapes_key = False, None
+        self._shaped, self._shapes_key, self._last_shapes = False, None, None
         self.w = np.zeros(len(self.H))
         self._w_set = False
         # compile (or load) the per-block kernels now: one first called in the first block with sound would stall a
@@ -272,14 +283,15 @@ class ConvolutionReverb:
 
     def _set_shapes(self, shapes) -> None:
         """Per-group per-band amplitudes (G, 9) -> smooth curves over the FFT bins (linear in log frequency between
-        band centres); none at all (a plain sum) when every amplitude is 1."""
+        band centres); none at all (a plain sum) when every amplitude is 1. Amplitudes equal to the last ones
+        change nothing (a listener who steps within a room re-keys the shapes without changing them)."""
         shapes = np.asarray(shapes, float).reshape(self.G, len(BANDS))
+        if self._last_shapes is not None and np.array_equal(shapes, self._last_shapes):
+            return
+        self._last_shapes = shapes.copy()
         self._shaped = not np.all(shapes == 1)
         if self._shaped:
-            f = np.fft.rfftfreq(2 * self.B, 1 / self.sample_rate)
-            lf = np.log2(np.maximum(f, BANDS[0]))
-            bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
-            self._curves[:] = shapes @ bins
+            self._curves[:] = shapes @ _band_bins(self.B, self.sample_rate)
 
     def process(self, x: np.ndarray, weights: np.ndarray, shapes: np.ndarray | None = None,
                 out: np.ndarray | None = None, level: tuple = (1.0, 1.0), shapes_key=None,
@@ -304,7 +316,7 @@ class ConvolutionReverb:
             out = np.zeros((2, B))
         if shapes_key is None or shapes_key != self._shapes_key:
             if shapes is None:
-                self._shaped = False
+                self._shaped, self._last_shapes = False, None
             else:
                 self._set_shapes(shapes)
             self._shapes_key = shapes_key
