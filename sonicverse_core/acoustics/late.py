@@ -176,6 +176,7 @@ class LateReverb:
                 self.tail_edt = np.vstack([self.tail_edt] + shut)
         self._colour = None
         self._portal_table = None
+        self._apart_key, self._apart_val = None, ()  # _apart's answer for (coupling state, listener's room)
 
     # --- the subsystem protocol ----------------------------------------------------------------------------------
     def state(self, cap: int) -> LateState:
@@ -508,15 +509,15 @@ class LateReverb:
             p = p / p.sum()
             shut = self._shut[mine]
             o, s_ = rt[mine].T @ p, rt[shut].T @ p  # (9,) room-mean open and shut RTs
-            span = s_[MID].mean() - o[MID].mean()  # a room without openings: no shut-door tail of its own
-            beta = float(np.clip((rt_now[MID].mean() - o[MID].mean()) / span, 0.0, 1.0)) \
-                if span > 0.01 * o[MID].mean() else 0.0
+            o_mid, s_mid = o[MID].mean(), s_[MID].mean()
+            span = s_mid - o_mid  # a room without openings: no shut-door tail of its own
+            beta = float(np.clip((rt_now[MID].mean() - o_mid) / span, 0.0, 1.0)) if span > 0.01 * o_mid else 0.0
             if single:
                 beta = float(beta > 0.5)
             out = np.zeros(len(rt))
             out[mine] = np.sqrt(p * (1 - beta))
             out[shut] += np.sqrt(p * beta)
-            e = (1 - beta) * o / o[MID].mean() + beta * s_ / s_[MID].mean()
+            e = (1 - beta) * o / o_mid + beta * s_ / s_mid
             return out, e
 
         d2 = np.sum((self.r._probe_pos - lis.position) ** 2, axis=1)
@@ -565,6 +566,9 @@ class LateReverb:
         bring the most energy into the listener's room first (rooms near in the coupling, not in metres)."""
         if not st.more:
             return []
+        key = (split["gen"], lr, len(st.more))  # the doors and the listener's room decide it, not a step
+        if self._apart_key == key:
+            return list(self._apart_val)
         taken = {lr, int(split["slow_room"])}
         own_mid = float(np.mean(split["own_rt"][lr, MID]))
         E = split["energy"][:, lr, MID].mean(1)  # (R_s,)
@@ -581,7 +585,8 @@ class LateReverb:
             if room not in best and score > 0:
                 best[room] = (k, room)
         chosen = list(best.values())[:len(st.more)]
-        return chosen + [(-1, -1)] * (len(st.more) - len(chosen))
+        self._apart_key, self._apart_val = key, tuple(chosen + [(-1, -1)] * (len(st.more) - len(chosen)))
+        return list(self._apart_val)
 
     def _late_groups(self, st, n: int):
         """Per source, which send it joins (0: the listener's room, or rooms unknown; 1 + r: room r, filtered by
