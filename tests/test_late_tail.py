@@ -198,3 +198,27 @@ def test_the_late_part_of_a_sound_from_another_room_builds_up_and_keeps_its_leve
     np.testing.assert_allclose(late(same, 0.02), late(same, 0.0), atol=1e-7)
     with pytest.raises(ConfigError, match="tail_buildup"):
         RenderConfig(tail_buildup=-0.01)
+
+
+def test_the_tails_band_shapes_are_applied_after_an_unshaped_block():
+    """A reverb's per-bin curves are rebuilt only when its groups' per-band amplitudes change (session 49). Shapes
+    A, then none, then A again under a new key: the third block is shaped exactly as a fresh reverb shapes A, and a
+    block with none is the plain sum."""
+    from sonicverse_core.acoustics.reverb import ConvolutionReverb
+
+    B, rt = 256, [np.full(len(BANDS), 0.4)]
+    shapes = np.linspace(0.2, 2.0, 2 * len(BANDS)).reshape(2, len(BANDS))
+    x = np.random.default_rng(0).normal(size=(3, 2, B)).astype(np.float32)
+
+    def play(seq):
+        rev, outs = ConvolutionReverb(FS, B, rt, groups=2), []
+        for k, (sh, key) in enumerate(seq):
+            outs.append(rev.process(x[k], np.ones(1), sh, out=np.zeros((2, B)), shapes_key=key))
+        return outs
+
+    got = play([(shapes, 1), (None, 2), (shapes, 3)])
+    ref = play([(shapes, 1), (np.ones_like(shapes), 2), (shapes, 3)])
+    for a, b in zip(got, ref):
+        np.testing.assert_array_equal(a, b)
+    plain = play([(None, 1)] * 3)
+    assert not np.allclose(got[2], plain[2])  # the shapes do apply

@@ -306,6 +306,39 @@ def test_a_dead_hall_hears_each_live_room_apart():
     assert q["EDT"][KHZ] < 0.3 and not r0._state[0].late.more
 
 
+def test_the_modes_heard_apart_follow_the_doors_and_the_room_as_a_fresh_choice_would():
+    """Which neighbours' modes a listener hears apart is cached per door state and listener's room (session 49: the
+    re-mix runs every centimetre a listener moves). After a door shuts, and after the listener walks into the east
+    room, the cached choice is the one a fresh computation gives, and the renderer plays it."""
+    scene = load_scene(HALL)
+    r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono"),
+                         probes=scene_probes(scene, BakeConfig(per_room=True)))
+    r.add_source(np.random.default_rng(0).normal(size=FS).astype(np.float32) * 0.1, position=(10.0, 1.2, 1.5))
+    lis = r.add_listener((6.0, 3.0, 1.5))
+    late = next(p for _, p in r._stages[1] if p.name == "late")
+    st, east = r._state[0].late, r.coupling.index["east"]
+
+    def check():
+        split = r.coupling.late_split()
+        cached = late._apart(st, split, st.lis_room)
+        assert late._apart_key[:2] == (split["gen"], st.lis_room)
+        late._apart_key = None
+        assert late._apart(st, split, st.lis_room) == cached
+        assert [t.room for t in st.more] == [room for _, room in cached]
+        return cached
+
+    r.render(0.2)
+    assert check()[0][1] == east  # the hall hears the east room apart
+    gen = r.coupling.late_split()["gen"]
+    scene.set_door("door_e", 0.0)
+    r.render(0.2)
+    assert r.coupling.late_split()["gen"] != gen
+    check()
+    r.set_listener(lis, (10.0, 3.0, 1.5), 0.0)  # into the east room: its own mode is no neighbour
+    r.render(0.2)
+    assert st.lis_room == east and check()[0][1] != east
+
+
 def test_a_neighbours_tail_falls_with_distance_at_its_own_decay():
     """Barron's law per mode: the east room's tail heard in the hall takes the east mode's decay in its sends'
     distance law, not the slowest (west) mode's, so a source 4.4 m away sends 0.174 r (1 / T_east - 1 / T_west) dB
