@@ -295,6 +295,13 @@ def test_cli_bench_audio_reports_realtime_fraction(cli):
     # per room (the default): the listener's own room's tails with its doors open and shut, blended, and the
     # slowest mode's; the whole space: one tail
     assert 2 <= d["per_listener"]["room_reverbs_convolved"]["max"] <= 4
+    # a listener walking at a VR user's pace recasts its segments more often than the bench's slow walk
+    res = cli("bench", "audio", "--sources", "8", "--seconds", "0.3", "--scene", "builtin:two-rooms?door=open",
+              "--walk", "1.2")
+    assert res.returncode == 0, res.stderr
+    walking = json.loads(res.stdout)
+    assert (d["walk_m_per_s"], walking["walk_m_per_s"]) == (0.15, 1.2)
+    assert sum(walking["occlusion"].values()) > 2 * sum(d["occlusion"].values()) > 0, (walking, d["occlusion"])
     res = cli("bench", "audio", "--sources", "8", "--seconds", "0.3", "--scene", "builtin:two-rooms?door=open",
               "--whole-space")
     assert res.returncode == 0, res.stderr

@@ -79,7 +79,7 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = Tru
 def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:apartment", seed: int = 0,
                 sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = True,
                 reverb: str = "convolution", er_images: str = "room", er_order: int = 1,
-                neighbour_tails: int | None = None, listener_room: str | None = None) -> dict:
+                neighbour_tails: int | None = None, listener_room: str | None = None, walk: float = 0.15) -> dict:
     """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
     reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how
     many room tails it convolves and from how many rooms sources send to it), with the listener walking and turning every block (so every source's direction, delay and
@@ -87,7 +87,9 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     the block with a 0.5 s binaural room impulse response (overlap-add). ``per_room``: probes baked per room and
     the rooms' decays coupled (``BakeConfig.per_room``); ``reverb``: "convolution" or "fdn"; ``er_images``,
     ``er_order``: the early reflections' geometry and order, ``neighbour_tails``: coupled rooms heard apart besides
-    the slowest mode's (``RenderConfig``); ``listener_room``: the room the listener starts in (default: anywhere)."""
+    the slowest mode's (``RenderConfig``); ``listener_room``: the room the listener starts in (default: anywhere);
+    ``walk``: the listener's speed (m/s) round a 0.3 m circle (a person walking in VR: about 1-1.4 m/s; the
+    occlusion recast and the late re-mix follow the listener's steps, so they run more often the faster it walks)."""
     from scipy.signal import oaconvolve
 
     from sonicverse_core.acoustics.renderer import RenderConfig
@@ -101,13 +103,14 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     start = lis.position.copy()
     block_s = block / sample_rate
     n_blocks = int(seconds / block_s)
+    omega = walk / 0.3  # rad/s round the circle (0.5 at the default 0.15 m/s)
     times = np.empty(n_blocks)
     paths, reverbs, sending = (np.zeros(n_blocks, int) for _ in range(3))
     from sonicverse_core.progress import progress
 
     for i in progress(range(-50, n_blocks), desc="audio blocks"):  # 50 warm-up blocks (timed per block, below)
         t = (i + 50) * block_s
-        pos = start + np.array([0.3 * np.sin(0.5 * t), 0.3 * np.cos(0.5 * t), 0.0])  # a slow walk...
+        pos = start + np.array([0.3 * np.sin(omega * t), 0.3 * np.cos(omega * t), 0.0])  # a walk (slow by default)...
         r.set_listener(lis, pos, 40.0 * t % 360.0)  # ...and a head turning at 40 deg/s
         t0 = time.perf_counter()
         r.render_block()
@@ -130,7 +133,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     return {
         "bench": "audio", "scene": spec, "sources": n_sources, "sample_rate": sample_rate, "block": block,
         "per_room": per_room, "reverb": reverb, "er_images": er_images, "er_order": er_order,
-        "neighbour_tails": neighbour_tails, "listener_room": listener_room,
+        "neighbour_tails": neighbour_tails, "listener_room": listener_room, "walk_m_per_s": walk,
         "blocks": n_blocks, "subsystems": r.subsystems,
         "realtime_fraction": {"median": round(float(np.median(frac)), 4), "p99": round(float(np.percentile(frac, 99)), 4),
                               "max": round(float(frac.max()), 4)},

@@ -175,6 +175,9 @@ def add_audio_commands(sub, bench_sub) -> None:
                     help="coupled rooms heard apart besides the slowest mode's (default: %(default)s)")
     ba.add_argument("--listener-room", default=None, metavar="NAME",
                     help="start the listener in this room of the scene (default: a random navigable point)")
+    ba.add_argument("--walk", type=A.number(0.0, 3.0, unit="m/s"), default=0.15, metavar="M/S",
+                    help="the listener's walking speed on its 0.3 m circle, m/s (default: %(default)s; a person "
+                    "walking in VR: about 1-1.4)")
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
@@ -246,7 +249,7 @@ def cmd_bench_audio(a) -> int:
     print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block,
                                  per_room=a.per_room, reverb=a.reverb, er_images=a.er_images,
                                  er_order=a.er_order, neighbour_tails=a.neighbour_tails,
-                                 listener_room=a.listener_room)))
+                                 listener_room=a.listener_room, walk=a.walk)))
     return 0
 
 
