@@ -306,3 +306,25 @@ def test_cli_bench_audio_reports_realtime_fraction(cli):
               "--whole-space")
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)["per_listener"]["room_reverbs_convolved"]["max"] == 1
+
+
+def test_bench_audio_times_blocks_without_the_collector_and_restores_it(monkeypatch):
+    """bench audio renders its timed blocks as the live audio workers do, with the garbage collector off (checked
+    inside the render), and leaves it as it found it."""
+    import gc
+
+    from app.bench.engine import bench_audio
+    from sonicverse_core.acoustics.renderer import AcousticRenderer
+
+    seen = []
+    render = AcousticRenderer.render_block
+
+    def spy(self, *a, **k):
+        seen.append(gc.isenabled())
+        return render(self, *a, **k)
+
+    monkeypatch.setattr(AcousticRenderer, "render_block", spy)
+    assert gc.isenabled()
+    d = bench_audio(2, 0.1, "shoebox:6x4x3", reference_blocks=1)
+    assert gc.isenabled() and seen and not any(seen)
+    assert d["garbage_collector"].startswith("frozen and off")
