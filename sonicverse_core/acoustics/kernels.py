@@ -543,7 +543,6 @@ def count_over(x, tol):
     return c
 
 
-
 @njit(**_opts)
 def segments_meet_boxes(a, b, lo, hi, out):
     """out[i] = does segment a[i] -> b (a (n, 3), b (3,): the listener, shared) meet any box [lo[j], hi[j]] ((m, 3)
