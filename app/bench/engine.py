@@ -112,7 +112,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
 
     # as the live audio workers render (app.audio_rt.worker): the collector frozen and off, so that its pauses,
     # which a live callback never sees, do not land in the timed blocks
-    collecting = gc.isenabled()
+    collecting, frozen = gc.isenabled(), gc.get_freeze_count()
     gc.collect()
     gc.freeze()
     gc.disable()
@@ -127,7 +127,8 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                 times[i] = time.perf_counter() - t0
                 paths[i], reverbs[i], sending[i] = (r.stats[k] for k in ("paths", "room_reverbs", "rooms_sending"))
     finally:
-        gc.unfreeze()
+        if not frozen:  # a caller's own frozen objects stay frozen
+            gc.unfreeze()
         if collecting:
             gc.enable()
     frac = times / block_s
