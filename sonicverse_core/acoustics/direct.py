@@ -11,6 +11,7 @@ import numpy as np
 
 from sonicverse_core.acoustics.kernels import (accumulate, crossfade_into, direct_geometry, gather, mix_spectra,
                                                onset_delays, pan_spectra, shift_left, woodworth_delays)
+from sonicverse_core.acoustics.fft import band_bins
 from sonicverse_core.acoustics.probes import AIR_ABSORPTION, SPEED_OF_SOUND
 from sonicverse_core.acoustics.state import PerSource
 from sonicverse_core.scene.materials import BANDS
@@ -61,11 +62,8 @@ class Direct:
         margin = 0 if self.hrtf is None else max(16, self.taps // 4)  # room for the band curve's ringing
         self.nfft = 1 << int(np.ceil(np.log2(B + self.taps + margin)))
         self.nf = self.nfft // 2 + 1
-        freqs = np.fft.rfftfreq(self.nfft, 1 / fs)
         # smooth per-band curve over FFT bins: linear in log frequency between band centres
-        lf = np.log2(np.maximum(freqs, BANDS[0]))
-        eye = np.eye(len(BANDS))
-        self.band_matrix = np.stack([np.interp(lf, np.log2(BANDS), e) for e in eye]).astype(np.float32)
+        self.band_matrix = band_bins(self.nfft, fs).astype(np.float32)
         self._onset_mean = self._diffuse = None
 
     # --- the subsystem protocol ----------------------------------------------------------------------------------

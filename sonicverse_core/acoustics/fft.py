@@ -9,9 +9,24 @@ block).
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 _FLAGS = ("FFTW_ESTIMATE",)
+
+
+@lru_cache(maxsize=None)
+def band_bins(nfft: int, sample_rate: int) -> np.ndarray:
+    """(9, nfft // 2 + 1): each octave band's weight over the bins of an nfft-point real FFT, linear in log
+    frequency between band centres and flat beyond the end bands, so that ``amplitudes (..., 9) @ band_bins`` is a
+    smooth per-band curve over the bins. Read-only and shared (cached per size and rate): copy it to write to it."""
+    from sonicverse_core.scene.materials import BANDS
+
+    lf = np.log2(np.maximum(np.fft.rfftfreq(nfft, 1 / sample_rate), BANDS[0]))
+    bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
+    bins.flags.writeable = False
+    return bins
 
 
 class Plan:

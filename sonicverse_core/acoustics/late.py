@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from sonicverse_core.acoustics.direct import HEAD_RADIUS
+from sonicverse_core.acoustics.fft import band_bins
 from sonicverse_core.acoustics.kernels import farther, rows_moved
 from sonicverse_core.acoustics.late_kernels import (buildup_filter, groups_sending, late_groups, late_send, mix_ramped,
                                                   portal_curve)
@@ -462,9 +463,7 @@ class LateReverb:
         itd = HEAD_RADIUS / SPEED_OF_SOUND * (lat + np.sin(lat)) * self.r.cfg.sample_rate
         self._portal_delays = np.rint(np.stack([np.maximum(-itd, 0.0), np.maximum(itd, 0.0)], 1)).astype(np.int64)
         self._portal_table = ratio
-        fb = np.fft.rfftfreq(2 * self.r.cfg.block, 1 / self.r.cfg.sample_rate)
-        lf = np.log2(np.maximum(fb, BANDS[0]))
-        self._portal_bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
+        self._portal_bins = band_bins(2 * self.r.cfg.block, self.r.cfg.sample_rate).copy()  # a kernel's own
 
     def _portal(self, lis, room, lr):
         """Where room ``room`` (a mode's) is heard from when it is not the listener's: the last bend of the open path

@@ -177,6 +177,7 @@ class Occlusion:
         """Recast what needs it for sources at ``pos`` (n, 3) heard at ``lis`` (3,); writes their rows of
         ``occ_target`` (cap, 9)."""
         n = len(pos)
+        lis = np.asarray(lis, np.float64)
         version = self.scene.dynamic_version
         # never-cast segments have NaN ends: infinitely moved, they go first
         moved = st.moved[:n]
@@ -193,7 +194,7 @@ class Occlusion:
                 todo[:] = True
             elif len(dirty[0]):
                 met = np.empty(n, bool)
-                segments_meet_boxes(pos, np.asarray(lis, np.float64), *dirty, met)
+                segments_meet_boxes(pos, lis, *dirty, met)
                 todo |= met
             st.scene_version = version
         if not np.any(todo):
@@ -203,7 +204,7 @@ class Occlusion:
         lo, hi = self._boxes()
         near = np.zeros(len(idx), bool)
         if len(lo):
-            segments_meet_boxes(a, np.asarray(lis, np.float64), lo, hi, near)
+            segments_meet_boxes(a, lis, lo, hi, near)
         cast = np.flatnonzero(near & (np.linalg.norm(b - a, axis=1) > 1e-6))
         self.stats["occlusion_rays"] += len(cast)
         self.stats["occlusion_skipped"] += len(idx) - len(cast)

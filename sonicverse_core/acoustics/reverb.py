@@ -12,6 +12,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from sonicverse_core.acoustics.fft import band_bins
 from sonicverse_core.scene.materials import BANDS
 
 BASE_DELAYS = np.array([1031, 1327, 1523, 1723, 1949, 2179, 2437, 2719])  # samples at 48 kHz (primes)
@@ -205,17 +206,6 @@ class PortalEars:
 ITD_LINE_S = 0.001  # s: the directional share's delay line (Woodworth's largest ITD is 0.66 ms)
 
 
-@lru_cache(maxsize=None)
-def _band_bins(B: int, sample_rate: int) -> np.ndarray:
-    """(9, B + 1): each band's weight over the bins of a 2B-point FFT (linear in log frequency between band centres,
-    flat beyond the end bands); read-only, shared by every reverb of that block size and rate."""
-    f = np.fft.rfftfreq(2 * B, 1 / sample_rate)
-    lf = np.log2(np.maximum(f, BANDS[0]))
-    bins = np.stack([np.interp(lf, np.log2(BANDS), e) for e in np.eye(len(BANDS))])
-    bins.flags.writeable = False
-    return bins
-
-
 class ConvolutionReverb:
     """Uniformly partitioned overlap-save convolution (partitions of one block) with a synthesised tail per probe;
     the outputs of the probes around the listener are mixed with ramped weights. Exact per-band decay, no
@@ -291,7 +281,7 @@ class ConvolutionReverb:
         self._last_shapes = shapes.copy()
         self._shaped = not np.all(shapes == 1)
         if self._shaped:
-            self._curves[:] = shapes @ _band_bins(self.B, self.sample_rate)
+            self._curves[:] = shapes @ band_bins(2 * self.B, self.sample_rate)
 
     def process(self, x: np.ndarray, weights: np.ndarray, shapes: np.ndarray | None = None,
                 out: np.ndarray | None = None, level: tuple = (1.0, 1.0), shapes_key=None,
