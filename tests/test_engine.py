@@ -243,6 +243,8 @@ def test_long_run_no_memory_growth_no_denormals(reverb):
     assert np.all(y == 0) or np.min(np.abs(y[y != 0])) >= 1e-30
     late = r._state[0].late
     state = (late.fdn.buf, late.fdn.zi) if reverb == "fdn" else (late.conv.fdl, late.conv._frame)
+    if reverb == "convolution":  # the tail's long partitions (a 1.2 s tail spans 225 blocks)
+        state += (late.conv.long.fdl, late.conv.long.frame, late.conv.long.col, late.conv.long.acc)
     for arr in state:
         tiny = np.finfo(arr.real.dtype).tiny
         nz = np.abs(arr[arr != 0])

@@ -346,6 +346,50 @@ def test_fdl_mac():
     np.testing.assert_allclose(out, np.einsum("pf,pef->ef", fdl, H[3:3 + P]), rtol=1e-4, atol=1e-4)
 
 
+def test_fdl_mac_add():
+    """A range of the delay line's rows, added into what the output holds (a long partition's share of a period)."""
+    P, F = 7, 17
+    fdl = (RNG.normal(size=(P, F)) + 1j * RNG.normal(size=(P, F))).astype(np.complex64)
+    H = (RNG.normal(size=(2 * P, 2, F)) + 1j * RNG.normal(size=(2 * P, 2, F))).astype(np.complex64)
+    start = (RNG.normal(size=(2, F)) + 1j * RNG.normal(size=(2, F))).astype(np.complex64)
+    out = start.copy()
+    LK.fdl_mac_add(fdl, H, 3, 2, 5, out)
+    np.testing.assert_allclose(out, start + np.einsum("pf,pef->ef", fdl[2:5], H[5:8]), rtol=1e-4, atol=1e-4)
+    whole = np.zeros((2, F), np.complex64)
+    for a, b in ((0, 3), (3, 3), (3, 7)):  # in shares, the whole
+        LK.fdl_mac_add(fdl, H, 3, a, b, whole)
+    ref = np.empty((2, F), np.complex64)
+    LK.fdl_mac(fdl, H, 3, ref)
+    np.testing.assert_allclose(whole, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_long_close_or_into_and_pick_slots():
+    G, L = 5, 8
+    frame = RNG.normal(size=(G, 2 * L)).astype(np.float32)
+    col = RNG.normal(size=(G, L)).astype(np.float32)
+    last = np.array([True, False, True, False, False])
+    this = np.array([True, True, False, False, False])
+    want = frame.copy()
+    for g in range(G):
+        if last[g] or this[g]:
+            want[g, :L] = frame[g, L:] if last[g] else 0.0
+            want[g, L:] = col[g]
+    live, order = np.zeros(G, bool), np.full(G, -1, np.int64)
+    n = LK.long_close(frame, col, last, this, live, order)
+    assert n == 3 and list(order[:n]) == [0, 1, 2] and list(live) == [True, True, True, False, False]
+    np.testing.assert_array_equal(frame, want)
+    assert list(last) == [True, True, False, False, False] and not this.any()
+    flags = np.array([True, False, False])
+    LK.or_into(flags, np.array([False, True, False]))
+    assert list(flags) == [True, True, False]
+    w0, w1 = np.array([0.0, 0.3, 0.0, 0.9, 1e-5]), np.array([0.0, 0.2, 0.5, 0.0, 1e-5])
+    slots = np.empty(4, np.int64)
+    LK.pick_slots(w0, w1, slots)
+    assert list(slots) == [3, 2, 1, -1]  # by max(w0, w1), none at or below 1e-4
+    LK.pick_slots(w0, w1, slots[:2])
+    assert list(slots[:2]) == [3, 2]
+
+
 def test_tail_partitions_reach_fdl_mac_in_c_order_whatever_order_the_fft_returns(monkeypatch):
     """NumPy 2's FFT returns its output in its input's memory order; the tail's partitions are cut from a transposed
     view, so they came out channel-outermost and fdl_mac (the callback's heaviest loop) compiled for a strided

@@ -53,6 +53,27 @@ def test_poisoned_state_recovers_within_a_block_and_says_so(reverberant, reverb)
     assert r.stats["recoveries"] == 1  # recovered once, for good
 
 
+def test_a_poisoned_long_partition_recovers_once_it_plays(reverberant):
+    """A NaN in the tail's long partitions (the part after its first 2 L samples) reaches the output only when the
+    period that multiplies it plays, one or two periods on: the renderer recovers then, once, and sounds again."""
+    from sonicverse_core.acoustics.probes import Probe
+
+    scene, _ = reverberant
+    dims = np.array([6.0, 5.0, 3.0])  # a probe ringing for 1.2 s: 225 blocks, long partitions of 8
+    probe = Probe(dims / 2, np.full(9, 1.2), np.full(9, 1.2), np.zeros(3), dims, ("PlasterRough",) * 6, 1.0)
+    r = AcousticRenderer(scene, RenderConfig(block=256), probes=[probe])
+    r.add_source(np.random.default_rng(0).normal(size=48000).astype(np.float32) * 0.1, (1.5, 1.5, 1.5))
+    r.add_listener((4.0, 3.0, 1.6))
+    r.render(0.3)
+    long = r._state[0].late.conv.long
+    assert long is not None and long.quiet == 0
+    long.fdl[:, 5] = np.nan
+    after = r.render(0.5)[0]
+    assert np.all(np.isfinite(after)) and np.abs(after).max() <= 1.0
+    assert r.stats["recoveries"] == 1
+    assert np.all(np.isfinite(long.fdl)) and _rms(after[:, -4800:]) > 1e-3
+
+
 def test_live_blocks_with_nan_or_inf_are_zeroed_and_counted(reverberant):
     r = _renderer(reverberant)
     mic = r.add_source(None, (2.0, 2.0, 1.5), live=True)

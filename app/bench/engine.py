@@ -79,7 +79,8 @@ def _audio_scene(spec: str, n_sources: int, seed: int, cfg, per_room: bool = Tru
 def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:apartment", seed: int = 0,
                 sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = True,
                 reverb: str = "convolution", er_images: str = "room", er_order: int = 1,
-                neighbour_tails: int | None = None, listener_room: str | None = None, walk: float = 0.15) -> dict:
+                neighbour_tails: int | None = None, listener_room: str | None = None, walk: float = 0.15,
+                tail_partitions: str = "auto") -> dict:
     """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
     reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how
     many room tails it convolves and from how many rooms sources send to it), with the listener walking and turning every block (so every source's direction, delay and
@@ -89,7 +90,8 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     ``er_order``: the early reflections' geometry and order, ``neighbour_tails``: coupled rooms heard apart besides
     the slowest mode's (``RenderConfig``); ``listener_room``: the room the listener starts in (default: anywhere);
     ``walk``: the listener's speed (m/s) round a 0.3 m circle (a person walking in VR: about 1-1.4 m/s; the
-    occlusion recast and the late re-mix follow the listener's steps, so they run more often the faster it walks)."""
+    occlusion recast and the late re-mix follow the listener's steps, so they run more often the faster it walks);
+    ``tail_partitions``: the convolution tails' partitions (``RenderConfig.tail_partitions``)."""
     from scipy.signal import oaconvolve
 
     from sonicverse_core.acoustics.renderer import RenderConfig
@@ -97,7 +99,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     if neighbour_tails is None:  # the renderer's default
         neighbour_tails = RenderConfig.neighbour_tails
     cfg = RenderConfig(sample_rate=sample_rate, block=block, reverb=reverb, er_images=er_images, er_order=er_order,
-                       neighbour_tails=neighbour_tails)
+                       neighbour_tails=neighbour_tails, tail_partitions=tail_partitions)
     r = _audio_scene(spec, n_sources, seed, cfg, per_room, listener_room)
     lis = r.listeners[0]
     start = lis.position.copy()
@@ -148,6 +150,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
         "bench": "audio", "scene": spec, "sources": n_sources, "sample_rate": sample_rate, "block": block,
         "per_room": per_room, "reverb": reverb, "er_images": er_images, "er_order": er_order,
         "neighbour_tails": neighbour_tails, "listener_room": listener_room, "walk_m_per_s": walk,
+        "tail_partitions": tail_partitions,
         "garbage_collector": "frozen and off while blocks are timed, as in the live audio workers",
         "blocks": n_blocks, "subsystems": r.subsystems,
         "realtime_fraction": {"median": round(float(np.median(frac)), 4), "p99": round(float(np.percentile(frac, 99)), 4),

@@ -173,6 +173,9 @@ def add_audio_commands(sub, bench_sub) -> None:
 
     ba.add_argument("--neighbour-tails", type=A.count(0, 4), default=RenderConfig.neighbour_tails, metavar="N",
                     help="coupled rooms heard apart besides the slowest mode's (default: %(default)s)")
+    ba.add_argument("--tail-partitions", choices=("auto", "uniform"), default=RenderConfig.tail_partitions,
+                    help="the convolution tails: long partitions after the first few where a tail spans 64 blocks "
+                    "or more (auto), or every partition one block long (default: %(default)s)")
     ba.add_argument("--listener-room", default=None, metavar="NAME",
                     help="start the listener in this room of the scene (default: a random navigable point)")
     ba.add_argument("--walk", type=A.number(0.0, 3.0, unit="m/s"), default=0.15, metavar="M/S",
@@ -249,7 +252,7 @@ def cmd_bench_audio(a) -> int:
     print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block,
                                  per_room=a.per_room, reverb=a.reverb, er_images=a.er_images,
                                  er_order=a.er_order, neighbour_tails=a.neighbour_tails,
-                                 listener_room=a.listener_room, walk=a.walk)))
+                                 listener_room=a.listener_room, walk=a.walk, tail_partitions=a.tail_partitions)))
     return 0
 
 

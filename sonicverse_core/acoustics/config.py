@@ -35,6 +35,9 @@ class RenderConfig:
     tail_edt: bool = True  # the convolution tails fall at first at the probes' baked EDT, then at their RT60
     tail_buildup: float = 0.02  # s: the late part of a source in another room builds up as 1 - e^(-t / this); 0: off
     neighbour_tails: int = 1  # coupled rooms: the most rooms besides the slowest mode's heard apart (0..4)
+    # auto: a convolution tail of 64 blocks or more is convolved in long partitions after its first few (the same
+    # convolution, its work spread over the blocks: long_tail.py); uniform: every partition one block long
+    tail_partitions: str = "auto"
 
     def __post_init__(self):
         if not (8000 <= self.sample_rate <= 192000):
@@ -67,5 +70,7 @@ class RenderConfig:
             raise ConfigError(f"tail_buildup must be within 0..0.2 s, got {self.tail_buildup}")
         if not (0 <= self.neighbour_tails <= 4):
             raise ConfigError(f"neighbour_tails must be within 0..4, got {self.neighbour_tails}")
+        if self.tail_partitions not in ("auto", "uniform"):
+            raise ConfigError(f"tail_partitions must be auto or uniform, got '{self.tail_partitions}'")
         if self.hrtf_taps and not (16 <= self.hrtf_taps <= 4096):
             raise ConfigError("hrtf_taps must be within 16..4096")

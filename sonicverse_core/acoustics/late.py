@@ -11,8 +11,7 @@ import numpy as np
 from sonicverse_core.acoustics.direct import HEAD_RADIUS
 from sonicverse_core.acoustics.fft import band_bins
 from sonicverse_core.acoustics.kernels import farther, rows_moved
-from sonicverse_core.acoustics.late_kernels import (buildup_filter, groups_sending, late_groups, late_send, mix_ramped,
-                                                  portal_curve)
+from sonicverse_core.acoustics.late_kernels import buildup_filter, groups_sending, late_groups, late_send, mix_ramped
 from sonicverse_core.acoustics.probes import SPEED_OF_SOUND
 from sonicverse_core.acoustics.reverb import PortalEars
 from sonicverse_core.acoustics.sources import grown
@@ -211,15 +210,15 @@ class LateReverb:
             from sonicverse_core.acoustics.reverb import ConvolutionReverb
 
             seed = cfg.tail_seed * SEED_STRIDE
+            part = {"partitions": cfg.tail_partitions}  # each reverb transforms its long partitions in other blocks
             st.conv = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed, groups=self.groups,
-                                        probe_edts=self.tail_edt,
-                                        **self.tail_colour())
+                                        probe_edts=self.tail_edt, stagger=0.0, **part, **self.tail_colour())
             if self.modal:  # the coupled rooms' slowest mode: its own input (its shapes differ per group) and
                 # its own noise (tails of other seeds: the two add in energy, not in amplitude)
                 st.conv_slow = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=SLOW_SEED + seed,
                                                  probe_edts=self.tail_edt, groups=self.groups,
-                                                 direct=cfg.output != "mono", direct_seed=seed,
-                                                 **self.tail_colour())
+                                                 direct=cfg.output != "mono", direct_seed=seed, stagger=0.5,
+                                                 **part, **self.tail_colour())
                 st.ears = PortalEars(cfg.block)  # the slow tail's direction
                 # rooms beyond two: the modes that ring in yet other rooms, each heard from its doorway. Their
                 # tails are those rooms' own, so the own-room noise serves (the same partitions, cached). The
@@ -227,9 +226,10 @@ class LateReverb:
                 st.more = [NeighbourTail(ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed,
                                                            probe_edts=self.tail_edt, groups=self.groups,
                                                            direct=cfg.output != "mono", direct_seed=seed,
+                                                           stagger=(0.25, 0.75, 0.125, 0.375)[j], **part,
                                                            **self.tail_colour()),
                                          cfg.block, build_up())
-                           for _ in range(extra)]
+                           for j in range(extra)]
         return st
 
     def grow(self, st: LateState | None, cap: int) -> None:
@@ -428,10 +428,7 @@ class LateReverb:
         az = math.degrees(math.atan2(py - p[1], px - p[0])) - lis.yaw
         idx = int(round(az / PORTAL_STEP)) % len(self._portal_table)
         if idx != st.portal_idx:
-            ears = st.ears
-            portal_curve(self._portal_table[idx], beta, self._portal_bins, ears.gains)
-            ears.diffuse = math.sqrt(max(1.0 - beta, 0.0))
-            ears.delays[:] = self._portal_delays[idx]
+            st.ears.set(self._portal_table[idx], beta, self._portal_bins, self._portal_delays[idx])
             st.portal_idx = idx
         return st.ears
 

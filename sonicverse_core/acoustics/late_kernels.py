@@ -243,3 +243,71 @@ def delayed_add(hist, d0, d1, out):
         for t in range(B):
             r = (t + 1) / B
             out[e, t] += (1.0 - r) * hist[e, a + t] + r * hist[e, b + t]
+
+
+@njit(**_fast)
+def fdl_mac_add(fdl, H, off, p0, p1, out):
+    """:func:`fdl_mac` over the delay line's rows p0..p1 - 1 only, added into ``out`` (not overwritten): a long
+    partition's multiply-accumulate spread over the blocks of a period (``reverb.LongPartitions``)."""
+    F = fdl.shape[1]
+    E = out.shape[0]
+    for p in range(p0, p1):
+        for e in range(E):
+            for f in range(F):
+                out[e, f] += fdl[p, f] * H[off + p, e, f]
+
+
+@njit(**_opts)
+def long_close(frame, col, live_last, live_col, live, order):
+    """A period of the long partitions ends: frame (G, 2L) becomes [last period | this period] (``col`` (G, L))
+    for every group with sound in either (``live`` (G,): set here; a group silent in the last period gets zeros
+    for it, since its frame may hold older samples), and this period's flags become the last's
+    (``live_last`` = ``live_col``; ``live_col`` cleared). A group silent in both is left as it is (``live``
+    False: nothing reads it). The live groups' indices go to the front of ``order``; returns how many there are."""
+    G, L = col.shape
+    c = 0
+    for g in range(G):
+        on = live_last[g] or live_col[g]
+        live[g] = on
+        if on:
+            order[c] = g
+            c += 1
+            if live_last[g]:
+                for t in range(L):
+                    frame[g, t] = frame[g, L + t]
+            else:
+                for t in range(L):
+                    frame[g, t] = 0.0
+            for t in range(L):
+                frame[g, L + t] = col[g, t]
+        live_last[g] = live_col[g]
+        live_col[g] = False
+    return c
+
+
+@njit(**_opts)
+def or_into(flags, more):
+    """flags[g] |= more[g]."""
+    for g in range(len(flags)):
+        flags[g] = flags[g] or more[g]
+
+
+@njit(**_opts)
+def pick_slots(w0, w1, slot_of):
+    """The tails a period of long partitions computes: slot_of[s] = the tail with the s-th largest max(w0, w1)
+    above 1e-4 (-1 past the last such tail)."""
+    S = len(slot_of)
+    for s in range(S):
+        slot_of[s] = -1
+        best = 1e-4
+        for k in range(len(w0)):
+            v = max(w0[k], w1[k])
+            if v <= best:
+                continue
+            taken = False
+            for r in range(s):
+                if slot_of[r] == k:
+                    taken = True
+            if not taken:
+                best = v
+                slot_of[s] = k

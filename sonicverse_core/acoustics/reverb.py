@@ -8,6 +8,7 @@ unit energy and two decorrelated output mixes feed the two ears.
 """
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -148,14 +149,26 @@ def _tail_length(rt60, sample_rate: int) -> int:
 
 @lru_cache(maxsize=64)
 def _partitions(rt60: tuple, sample_rate: int, B: int, P: int, seed: int, gains: tuple | None,
-                coherence: tuple | None, edt: tuple | None = None) -> np.ndarray:
+                coherence: tuple | None, edt: tuple | None = None, m: int = 0):
     """A synthesised tail cut into P partitions of B samples, as spectra (2P, 2, B + 1) complex64, doubled so that
-    the frequency-domain delay line never wraps; read-only (shared)."""
+    the frequency-domain delay line never wraps; read-only (shared). With ``m`` (:func:`long_split`), the tail's
+    first 2 m B samples in 2 m partitions of B and the rest in partitions of L = m B: (head, long spectra (2Q, 2,
+    L + 1)); else (head, None)."""
     g = None if gains is None else np.array(gains).reshape(2, -1)
     t = synth_tail(np.array(rt60), sample_rate, seed=seed, gains=g,
                    coherence=None if coherence is None else np.array(coherence),
                    edt=None if edt is None else np.array(edt))[:, : P * B]
-    return _spectra(t, P, B)
+    return _cut(t, P, B, m)
+
+
+def _cut(t: np.ndarray, P: int, B: int, m: int):
+    """A tail (C, n <= P B) as (head, long) spectra: all of it in P partitions of B and None (``m`` 0), or its
+    first 2 m B samples in 2 m partitions of B and the rest in partitions of m B."""
+    if not m:
+        return _spectra(t, P, B), None
+    L = m * B
+    Q = -(-(P * B - 2 * L) // L)
+    return _spectra(t[:, : 2 * L], 2 * m, B), _spectra(t[:, 2 * L:], Q, L)
 
 
 def _spectra(t: np.ndarray, P: int, B: int) -> np.ndarray:
@@ -177,16 +190,33 @@ DIRECT_SEED = 77_777  # the third, directional channel's noise: independent of e
 
 @lru_cache(maxsize=64)
 def _direct_partitions(rt60: tuple, sample_rate: int, B: int, P: int, seed: int, gains: tuple | None,
-                       coherence: tuple | None, edt: tuple | None = None) -> np.ndarray:
+                       coherence: tuple | None, edt: tuple | None = None, m: int = 0):
     """A third channel for a tail of :func:`_partitions`' parameters: the same decay and colouring (the two ears'
-    mean), noise independent of both ears; spectra (2P, 1, B + 1) complex64, read-only. What a tail's directional
-    share is made of (:meth:`ConvolutionReverb.process`'s ``ears``): mixed into both ears with each ear's gain and
-    delay, it is coherent between them, with the interaural delay of its direction."""
+    mean), noise independent of both ears; spectra (2P, 1, B + 1) complex64, read-only, cut as ``_partitions``
+    cuts (head, long). What a tail's directional share is made of (:meth:`ConvolutionReverb.process`'s ``ears``):
+    mixed into both ears with each ear's gain and delay, it is coherent between them, with the interaural delay of
+    its direction."""
     g = None if gains is None else np.repeat(np.array(gains).reshape(2, -1).mean(0, keepdims=True), 2, axis=0)
     t = synth_tail(np.array(rt60), sample_rate, seed=seed + DIRECT_SEED, gains=g,
                    coherence=None if coherence is None else np.array(coherence),
                    edt=None if edt is None else np.array(edt))[:1, : P * B]
-    return _spectra(t, P, B)
+    return _cut(t, P, B, m)
+
+
+LONG_MIN_PARTITIONS = 64  # a tail of fewer blocks is convolved in partitions of one block (RenderConfig's "auto")
+
+
+def long_split(P: int) -> int:
+    """How many blocks a long partition spans for a tail of ``P`` blocks (0: all partitions of one block). Each block
+    multiplies 2 m partitions of B bins and a share 1 / m of the Q = P / m - 2 long partitions of m B bins: about
+    (2 m + P / m) B bins, least at m = sqrt(P / 2) (a power of two, 4-64). A tail shorter than
+    ``LONG_MIN_PARTITIONS`` blocks keeps one-block partitions: it is cheap already, and the environments' 0.1 s
+    blocks (30 partitions of a 3 s tail) keep their sound to the bit."""
+    if P < LONG_MIN_PARTITIONS:
+        return 0
+    m = 1 << int(round(math.log2(math.sqrt(P / 2))))
+    m = min(max(m, 4), 64)
+    return m if P > 3 * m else 0
 
 
 class PortalEars:
@@ -195,27 +225,44 @@ class PortalEars:
     the FFT's bins (``gains`` (2, block + 1): sqrt(beta) times that direction's level over the diffuse field's) and
     its per-ear delays in samples (``delays`` (2,): the interaural delay, on the far ear)."""
 
-    __slots__ = ("diffuse", "gains", "delays")
+    __slots__ = ("diffuse", "gains", "delays", "band", "beta", "version")
 
     def __init__(self, block: int):
         self.diffuse = 1.0
         self.gains = np.zeros((2, block + 1), np.complex64)  # real values; the spectra's type (no cast per block)
         self.delays = np.zeros(2, np.int64)
+        # what ``gains`` were made of (late_kernels.portal_curve): the direction's per-band ear gains (2, 9) and its
+        # share; ``version`` counts the changes (long partitions make their own gains over their bins from these)
+        self.band, self.beta, self.version = np.zeros((2, 9)), 0.0, 0
+
+    def set(self, band: np.ndarray, beta: float, bins: np.ndarray, delays: np.ndarray) -> None:
+        """A new direction: the per-band gains ``band`` (2, 9) of which ``beta`` arrives from it, over ``bins``
+        (9, block + 1); ``delays`` (2,) per ear in samples. Allocates nothing."""
+        from sonicverse_core.acoustics.late_kernels import portal_curve
+
+        portal_curve(band, beta, bins, self.gains)
+        self.band, self.beta = band, beta
+        self.diffuse = math.sqrt(max(1.0 - beta, 0.0))
+        self.delays[:] = delays
+        self.version += 1
 
 
 ITD_LINE_S = 0.001  # s: the directional share's delay line (Woodworth's largest ITD is 0.66 ms)
 
 
 class ConvolutionReverb:
-    """Uniformly partitioned overlap-save convolution (partitions of one block) with a synthesised tail per probe;
-    the outputs of the probes around the listener are mixed with ramped weights. Exact per-band decay, no
-    discrete echoes at the onset (noise, not a delay network), the binaural set's diffuse-field colouring and
-    interaural coherence per band, the same energy in both channels; more cost than the FDN (the accuracy bench
-    compares the two). The default late reverb."""
+    """Partitioned overlap-save convolution with a synthesised tail per probe: partitions of one block, and where a
+    tail spans ``LONG_MIN_PARTITIONS`` blocks or more (``partitions="auto"``) its part after the first 2 m blocks
+    in partitions of m blocks, their work spread over the blocks (:mod:`~sonicverse_core.acoustics.long_tail`; the
+    same convolution, cheaper: ``bench accuracy``'s reverb knob times both); the outputs of the probes around the
+    listener are mixed with ramped weights. Exact per-band decay, no discrete echoes at the onset (noise, not a
+    delay network), the binaural set's diffuse-field colouring and interaural coherence per band, the same energy
+    in both channels; more cost than the FDN (the accuracy bench compares the two). The default late reverb."""
 
     def __init__(self, sample_rate: int, block: int, probe_rt60s, seconds: float = 3.0, seed: int = 0,
                  gains: np.ndarray | None = None, coherence: np.ndarray | None = None, groups: int = 1,
-                 probe_edts=None, direct: bool = False, direct_seed: int | None = None):
+                 probe_edts=None, direct: bool = False, direct_seed: int | None = None, partitions: str = "auto",
+                 stagger: float = 0.0):
         from sonicverse_core.acoustics.fft import irfft_plan, rfft_plan
 
         self.B = B = block
@@ -223,16 +270,32 @@ class ConvolutionReverb:
         self.nf = B + 1
         key = (lambda a: None if a is None else tuple(np.round(np.asarray(a, float).ravel(), 6)))
         n = [min(_tail_length(rt, sample_rate), int(seconds * sample_rate)) for rt in probe_rt60s]
-        self.P = P = max(1, int(np.ceil(max(n) / B)))
+        n_blocks = max(1, int(np.ceil(max(n) / B)))
+        if partitions not in ("auto", "uniform"):
+            raise ValueError(f"partitions must be auto or uniform, got {partitions!r}")
+        # "auto": a long tail's part after its first 2 m blocks in partitions of m blocks (long_tail.py);
+        # "uniform": every partition one block long
+        self.m = m = long_split(n_blocks) if partitions == "auto" else 0
+        self.P = P = 2 * m if m else n_blocks  # the partitions of one block
         # tails are cached across renderers (an env builds one per episode): same parameters, same partitions
         edts = [None] * len(probe_rt60s) if probe_edts is None else probe_edts
-        self.H = [_partitions(key(rt), sample_rate, B, P, seed + k, key(gains), key(coherence), key(e))
-                  for k, (rt, e) in enumerate(zip(probe_rt60s, edts))]
+        parts = [_partitions(key(rt), sample_rate, B, n_blocks, seed + k, key(gains),
+                             key(coherence), key(e), m)
+                 for k, (rt, e) in enumerate(zip(probe_rt60s, edts))]
+        self.H = [h for h, _ in parts]
         # ``direct``: a third channel per tail, for a share that arrives from one direction (``process``'s ears);
         # ``direct_seed`` (default ``seed``): reverbs that never play the same tail at once may share these
         ds = seed if direct_seed is None else direct_seed
-        self.Hd = [_direct_partitions(key(rt), sample_rate, B, P, ds + k, key(gains), key(coherence), key(e))
-                   for k, (rt, e) in enumerate(zip(probe_rt60s, edts))] if direct else None
+        dparts = [_direct_partitions(key(rt), sample_rate, B, n_blocks, ds + k, key(gains),
+                                     key(coherence), key(e), m)
+                  for k, (rt, e) in enumerate(zip(probe_rt60s, edts))] if direct else None
+        self.Hd = None if dparts is None else [h for h, _ in dparts]
+        self.long = None
+        if m:
+            from sonicverse_core.acoustics.long_tail import LongPartitions
+
+            self.long = LongPartitions(sample_rate, B, m, groups, [h for _, h in parts],
+                                       None if dparts is None else [h for _, h in dparts], stagger=stagger)
         self.fdl = np.zeros((P, self.nf), np.complex64)
         self.t = 0
         self.G = groups
@@ -270,6 +333,8 @@ class ConvolutionReverb:
         self._frame[:] = 0.0
         if self.Hd is not None:
             self._dhist[:] = 0.0
+        if self.long is not None:
+            self.long.reset()
 
     def _set_shapes(self, shapes) -> None:
         """Per-group per-band amplitudes (G, 9) -> smooth curves over the FFT bins (linear in log frequency between
@@ -282,6 +347,8 @@ class ConvolutionReverb:
         self._shaped = not np.all(shapes == 1)
         if self._shaped:
             self._curves[:] = shapes @ band_bins(2 * self.B, self.sample_rate)
+            if self.long is not None:
+                np.matmul(shapes, self.long.bins, out=self.long.curves, casting="unsafe")
 
     def process(self, x: np.ndarray, weights: np.ndarray, shapes: np.ndarray | None = None,
                 out: np.ndarray | None = None, level: tuple = (1.0, 1.0), shapes_key=None,
@@ -300,6 +367,8 @@ class ConvolutionReverb:
 
         B, P = self.B, self.P
         x = x.reshape(-1, B)
+        if not isinstance(weights, np.ndarray):
+            weights = np.asarray(weights, float)
         if len(x) != self.G:
             raise ValueError(f"expected {self.G} send(s), got {len(x)}")
         if out is None:
@@ -324,24 +393,27 @@ class ConvolutionReverb:
             self.w[:] = weights
             self._w_set = True
         scale = 1.0 / (2 * B)
+        diffuse = 1.0
         if ears is not None:
             if self.Hd is None:
                 raise ValueError("a direction needs a reverb made with direct=True")
             self._dacc.fill(0.0)
+            diffuse = ears.diffuse
         for k in range(len(self.H)):
             w0, w1 = float(self.w[k]), float(weights[k])
             if w0 <= 1e-4 and w1 <= 1e-4:
                 continue
             fdl_mac(self.fdl, self.H[k], off, self._Y)
-            diffuse = 1.0
             if ears is not None:
-                diffuse = ears.diffuse
                 fdl_mac(self.fdl, self.Hd[k], off, self._M)
                 np.multiply(self._M, ears.gains, out=self._Yd)
                 self._inv_d.run()
                 mix_ramped(self._yd, w0, w1, level[0], level[1], scale, self._dacc)
             self._inv.run()
             mix_ramped(self._y, w0, w1, level[0], level[1], scale * diffuse, out)
+        if self.long is not None:  # the tail after its first 2 L samples
+            self.long.process(frame[:, B:], self._live, self.w, weights, level[0], level[1], diffuse, ears,
+                              self._shaped, out, self._dacc if self.Hd is not None else None)
         if self.Hd is not None:  # the directional share through its delay line (silence in it when no direction)
             if ears is None:
                 self._dacc.fill(0.0)

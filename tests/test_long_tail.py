@@ -1,0 +1,168 @@
+"""Long partitions of the convolution tails (``RenderConfig.tail_partitions="auto"``, sonicverse_core/acoustics/
+long_tail.py): the same convolution as one-block partitions, the work spread over the blocks, silence computing
+nothing, and the differences the module's docstring names measured."""
+import numpy as np
+import pytest
+from scipy.signal import butter, sosfilt
+
+from sonicverse_core.acoustics.fft import band_bins
+from sonicverse_core.acoustics.reverb import ConvolutionReverb, PortalEars, long_split
+from sonicverse_core.scene.materials import BANDS
+
+FS, B = 48000, 256
+RT = [np.full(len(BANDS), 1.2), np.linspace(1.5, 0.6, len(BANDS))]  # two tails: 240 blocks, long partitions of 8
+SHAPES = np.vstack([np.ones(len(BANDS)), np.linspace(0.2, 1.0, len(BANDS)), np.linspace(1.0, 0.1, len(BANDS))])
+
+
+def _play(partitions, n=800, weights=None, shapes=None, ears=False, sound=lambda t: t < 300, seed=1):
+    """A reverb of three groups (the third silent) fed noise while ``sound(t)``; (2, n B) output and the reverb."""
+    rev = ConvolutionReverb(FS, B, RT, groups=3, partitions=partitions, direct=ears, stagger=0.3)
+    e = None
+    if ears:
+        e = PortalEars(B)
+        e.set(np.vstack([np.linspace(0.5, 1.5, 9), np.linspace(1.5, 0.5, 9)]), 0.4, band_bins(2 * B, FS).copy(),
+              np.array([0, 12]))
+    rng, outs = np.random.default_rng(seed), []
+    for t in range(n):
+        x = rng.normal(size=(3, B)).astype(np.float32) * bool(sound(t))
+        x[2] = 0.0
+        w = np.array([0.6, 0.4]) if weights is None else weights(t)
+        out = np.zeros((2, B))
+        rev.process(x, w, shapes, out=out, shapes_key=None if shapes is None else 1, ears=e)
+        outs.append(out)
+    return np.concatenate(outs, axis=1), rev
+
+
+def _rel_db(a, b):
+    return 20 * np.log10(np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b ** 2)))
+
+
+def test_the_split_follows_the_tails_length():
+    assert long_split(30) == 0  # an environment's 0.1 s blocks: one-block partitions, its sound to the bit
+    assert long_split(63) == 0 and long_split(64) == 4
+    assert long_split(563) == 16  # a 3 s tail of 256-frame blocks at 48 kHz
+    rev = ConvolutionReverb(FS, B, RT, partitions="uniform")
+    assert rev.long is None and rev.P == 240
+    rev = ConvolutionReverb(FS, B, RT)
+    assert rev.m == 8 and rev.P == 16 and rev.long.Q == 28  # 16 + 8 x 28 = 240 blocks: the whole tail
+    with pytest.raises(ValueError):
+        ConvolutionReverb(FS, B, RT, partitions="long")
+
+
+@pytest.mark.parametrize("weights", [None, lambda t: np.array([0.5 + 0.5 * np.sin(t / 50), 0.5 - 0.5 * np.sin(t / 50)])],
+                         ids=["fixed", "ramped"])
+def test_long_partitions_are_the_same_convolution(weights):
+    """Unshaped sends, both tails mixed (fixed or ramping weights), sound, then silence long enough for the long
+    delay line to empty (it then computes nothing), then sound again: the output equals one-block partitions' to
+    float rounding."""
+    on = (lambda t: t < 300 or t > 700)
+    a, _ = _play("uniform", n=900, weights=weights, sound=on)
+    b, rev = _play("auto", n=900, weights=weights, sound=on)
+    assert rev.long is not None and rev.long.j > rev.long.Q + 2
+    assert _rel_db(b, a) < -100
+    np.testing.assert_allclose(b, a, atol=1e-5 * np.abs(a).max())
+    assert np.abs(a[:, 680 * B:700 * B]).max() < 1e-3 * np.abs(a).max()  # the tail had died away in the gap
+
+
+def test_silence_computes_nothing_and_plays_nothing():
+    """Once Q periods have passed without sound, a period transforms nothing and plays nothing (its delay line holds
+    only zeros); a sound wakes it in the next period."""
+    _, rev = _play("auto", n=600, sound=lambda t: t < 100)
+    L = rev.long
+    assert L.quiet > L.Q and np.all(L.ready == -1)
+    runs = []
+    for g, p in enumerate(L._fwd):
+        p.run = (lambda f=p.run: runs.append(1) or f())
+    x = np.zeros((3, B), np.float32)
+    for _ in range(3 * L.m):
+        rev.process(x, np.array([0.6, 0.4]), out=np.zeros((2, B)))
+    assert not runs
+    x[0] = 1.0
+    for _ in range(2 * L.m):
+        rev.process(x, np.array([0.6, 0.4]), out=np.zeros((2, B)))
+    assert runs and L.quiet == 0
+
+
+def test_each_block_does_a_share_of_the_periods_work():
+    """No block transforms more than its share: each of the first F blocks of a period a 1 / F share of the live
+    groups, each of the last F a 1 / F share of the inverse transforms, none both, and each block between them a
+    range of the long delay line's rows (the rows covered once a period)."""
+    rev = ConvolutionReverb(FS, B, RT, groups=9, direct=True)
+    L = rev.long
+    e = PortalEars(B)
+    e.set(np.ones((2, 9)), 0.3, band_bins(2 * B, FS).copy(), np.array([3, 0]))
+    count = {"fwd": 0, "inv": 0}
+    for plans, kind in ((L._fwd, "fwd"), (sum(L._inv, []) + sum(L._inv_d, []), "inv")):
+        for p in plans:
+            p.run = (lambda f=p.run, k=kind: count.__setitem__(k, count[k] + 1) or f())
+    rng = np.random.default_rng(0)
+    per_block = []
+    for t in range(10 * L.m):
+        before = dict(count)
+        rev.process(rng.normal(size=(9, B)).astype(np.float32), np.array([0.5, 0.5]), out=np.zeros((2, B)), ears=e)
+        per_block.append((count["fwd"] - before["fwd"], count["inv"] - before["inv"]))
+    per_block = np.array(per_block[2 * L.m:])
+    assert per_block[:, 0].max() <= -(-9 // L.F) and per_block[:, 1].max() <= -(-2 * 2 // L.F)
+    assert not np.any((per_block[:, 0] > 0) & (per_block[:, 1] > 0))
+    assert per_block[:, 0].sum() == 9 * (len(per_block) // L.m)  # every group once a period
+    assert per_block[:, 1].sum() == 4 * (len(per_block) // L.m)  # two tails, their own and directional channels
+    rows = [L._work[ph] for ph in range(L.F, L.m - L.F)]
+    assert rows[0][0] == 0 and rows[-1][1] == L.Q and all(a[1] == b[0] for a, b in zip(rows, rows[1:]))
+
+
+def _bands(x):
+    """Energy per octave band 250 Hz-4 kHz of each channel (2, 5)."""
+    out = []
+    for f0 in BANDS[3:8]:
+        sos = butter(4, [f0 / np.sqrt(2), f0 * np.sqrt(2)], "bandpass", fs=FS, output="sos")
+        out.append(np.sum(sosfilt(sos, x, axis=-1) ** 2, axis=-1))
+    return np.array(out).T
+
+
+@pytest.mark.parametrize("ears", [False, True], ids=["shaped", "shaped with a direction"])
+def test_shaped_sends_and_a_direction_keep_every_bands_level(ears):
+    """Where the sends are shaped per band (coupled rooms), the long partitions shape each period's spectrum over
+    their own, finer bins, and a direction's per-ear gains likewise: the waveform differs from one-block partitions'
+    by less than -40 dB, and every band's level in each ear by less than 0.05 dB."""
+    a, _ = _play("uniform", shapes=SHAPES, ears=ears)
+    b, _ = _play("auto", shapes=SHAPES, ears=ears)
+    assert _rel_db(b, a) < -40
+    np.testing.assert_allclose(10 * np.log10(_bands(b) / _bands(a)), 0.0, atol=0.05)
+
+
+def test_a_tail_entering_the_mix_misses_at_most_a_decibel():
+    """The worst probe change a listener makes: one of two tails at equal weights (the two nearest probes) gives way
+    to a third it had not mixed in. The entering tail's part after 2 L is computed from the next period on, so for
+    at most two periods the output lacks it: the level over those periods stays within 1 dB of one-block
+    partitions', and equals it after."""
+    rts = RT + [np.full(len(BANDS), 1.2)]
+    switch = 400
+
+    def play(partitions):
+        rev = ConvolutionReverb(FS, B, rts, groups=1, partitions=partitions)
+        rng, outs = np.random.default_rng(4), []
+        for t in range(switch + 60):
+            w = np.array([0.5, 0.5, 0.0]) if t < switch else np.array([0.5, 0.0, 0.5])
+            outs.append(rev.process(rng.normal(size=(1, B)).astype(np.float32), w, out=np.zeros((2, B))))
+        return np.concatenate(outs, axis=1), rev
+
+    a, _ = play("uniform")
+    b, rev = play("auto")
+    m = rev.long.m
+    win = slice(switch * B, (switch + 2 * m + 1) * B)
+    dip = 10 * np.log10(np.sum(b[:, win] ** 2) / np.sum(a[:, win] ** 2))
+    assert -1.0 < dip < 0.0
+    after = slice((switch + 2 * m + 1) * B, None)
+    assert _rel_db(b[:, after], a[:, after]) < -100
+
+
+def test_bench_accuracy_reverb_knob_has_both_partitionings_with_the_same_decay():
+    """README (bench accuracy, reverb method): the tails in long partitions decay as the one-block partitions' do
+    (the same convolution); the knob's rows carry both beside the FDN."""
+    from app.bench.accuracy import _reverb
+
+    rows = {r["setting"]: r for r in _reverb(quick=True)["rows"]}
+    assert set(rows) == {"fdn", "convolution", "convolution uniform"}
+    np.testing.assert_allclose(rows["convolution"]["rt60_measured"], rows["convolution uniform"]["rt60_measured"],
+                               atol=1e-3)
+    assert rows["convolution"]["error"] < 0.1
