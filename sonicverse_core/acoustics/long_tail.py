@@ -8,16 +8,17 @@ ConvolutionReverb`'s own delay line) and the rest is cut into Q partitions of L 
 input is a whole period (m blocks); its output is needed from 2 L after that period's start, so the m blocks of
 the next period have time to compute it, and each does a share (as real-time convolvers do, Wefers 2015): the
 first m / 4 transform the groups' sends (a few groups each), the middle ones multiply-accumulate a range of the
-delay line's Q rows, the last transforms back. The following period plays the result out a block at a time, with
+delay line's Q rows, the last m / 4 transform back into a second buffer. The following period plays the result out a block at a time, with
 that block's mixing weights, late level and diffuse share, so the mix ramps exactly as the short partitions'.
 
-The same convolution up to rounding where the sends are unshaped: tested against uniform partitions to -100 dB.
-What differs, and by how little, is measured in ``tests/test_late_tail.py``:
+The same convolution up to rounding where the sends are unshaped: tested against one-block partitions to -100 dB.
+What differs, and by how little, is measured in ``tests/test_long_tail.py``:
 - the groups' per-band shapes are applied to each period's spectrum over its 2 L bins (finer than one block's);
 - a tail that enters the mix (the listener walks to another probe) is computed from the next period on: its part
-  later than 2 L is missing for one or two periods (at most 2 L of sound, 10-15 dB below the tail's onset);
-- the directional share's per-ear gains (a neighbouring room's doorway) are those of the period's last block, so
-  the part later than 2 L follows a head turn one period late.
+  later than 2 L is missing until then (at the worst, one of two equal tails replaced by a third, the level is
+  under 1 dB low for a period);
+- the directional share's per-ear gains (a neighbouring room's doorway) are those of the block that starts the
+  period's inverse transforms, so the part later than 2 L follows a head turn up to a period late.
 Nothing is allocated per block: every buffer, plan and view is made here.
 """
 from __future__ import annotations
