@@ -286,8 +286,10 @@ class LateReverb:
             w /= w.sum()
             rt = w @ self.rt
             vol = float(w @ self.vol)
-            if self.r.coupling is not None and st.lis_room >= 0 and self.r.coupling.rooms[st.lis_room].volume > 1:
-                vol = self.r.coupling.rooms[st.lis_room].volume  # the room's own (a proxy box sees through doors)
+            if self.r.coupling is not None and st.lis_room >= 0 and self.r.coupling.V[st.lis_room] > 1:
+                # the room's own volume (a proxy box sees through doors; the coupling's V is max(volume, 1), made
+                # once: a Room's volume is a polygon's area computed on every call)
+                vol = float(self.r.coupling.V[st.lis_room])
             lo, hi = float(np.mean(rt[3:6])), float(rt[7])  # 250 Hz-1 kHz and 4 kHz: the FDN's two fit points
             # diffuse-field level relative to the direct sound at 1 m: 16 pi / A, A = 0.161 V / T (Sabine)
             level = np.sqrt(16 * np.pi * max(lo, 0.05) / (0.161 * max(vol, 1.0)))

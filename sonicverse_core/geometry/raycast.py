@@ -101,6 +101,14 @@ class RayCaster:
         h = self.first_hit(o, d, maxd)
         return h.face, h.distance
 
+    def faces_f32(self, o: np.ndarray, d32: np.ndarray, maxd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`faces` with the directions already float32 (a walk along segments converts them once)."""
+        if self.backend == "embree":
+            res = self._impl.run(o.astype(np.float32), d32, dists=np.minimum(maxd, 3.0e38).astype(np.float32),
+                                 output=1)
+            return res["primID"].astype(np.int64), res["tfar"].astype(np.float64)
+        return self.faces(o, d32.astype(np.float64), maxd)
+
     def first_hit(self, origins, directions, max_distance=np.inf) -> Hits:
         """First surface hit by each ray (directions are normalised) within ``max_distance`` (scalar or (n,))."""
         o, d = _as_rays(origins, directions)
@@ -181,36 +189,55 @@ class SceneRayCaster:
         b = np.atleast_2d(np.asarray(b, dtype=np.float64))
         seg = b - a
         length = np.linalg.norm(seg, axis=1)
-        out = []
+        rays, dists, faces, which = [], [], [], []  # per step: the rays that hit, where, the face, the caster
         casters = [(self.static, 0, False)]
         if include_dynamic and self.scene.objects:
             casters.append((self.dynamic, self.part_offset(), True))
         start = np.flatnonzero(length > STEP_EPS)
         d0 = seg[start] / length[start, None]
-        for caster, off, dyn in casters:
+        for ci, (caster, off, dyn) in enumerate(casters):
             if caster.empty:
                 continue
             active, d, travelled = start, d0, np.zeros(len(start))
+            o, left, d32 = a[start], length[start], d0.astype(np.float32)
             for _ in range(max_hits):
                 if len(active) == 0:
                     break
-                face, dist = caster.faces(a[active] + d * travelled[:, None], d, length[active] - travelled)
+                face, dist = caster.faces_f32(o + d * travelled[:, None], d32, left - travelled)
                 hit = face >= 0
                 if not hit.all():
                     if not hit.any():
                         break
-                    active, d, travelled, face, dist = active[hit], d[hit], travelled[hit], face[hit], dist[hit]
+                    active, d, d32, o, left = active[hit], d[hit], d32[hit], o[hit], left[hit]
+                    travelled, face, dist = travelled[hit], face[hit], dist[hit]
                 t = travelled + dist
-                out.append((active, t, caster.mesh.face_part[face] + off, caster.mesh.face_material[face],
-                            np.full(len(active), dyn), face + (len(self.scene.static_mesh()) if dyn else 0)))
+                rays.append(active)
+                dists.append(t)
+                faces.append(face)
+                which.append(np.full(len(active), ci, np.int8))
                 travelled = t + STEP_EPS
-        if not out:
+        if not rays:
             e = np.zeros(0)
             return Crossings(e.astype(np.int64), e, e.astype(np.int64), e.astype(np.int64), e.astype(bool),
                              e.astype(np.int64))
-        cat = [np.concatenate(x) for x in zip(*out)]
-        order = np.lexsort((cat[1], cat[0]))
-        return Crossings(*(c[order] for c in cat))
+        ray, dist, face, ci = (np.concatenate(x) for x in (rays, dists, faces, which))
+        order = np.lexsort((dist, ray))
+        ray, dist, face, ci = ray[order], dist[order], face[order], ci[order]
+        part = np.empty(len(ray), self.static.mesh.face_part.dtype)
+        material = np.empty(len(ray), self.static.mesh.face_material.dtype)
+        dynamic = np.zeros(len(ray), bool)
+        glob = face.copy()  # static faces first, then the dynamic mesh's
+        for k, (caster, off, dyn) in enumerate(casters):
+            sel = ci == k
+            if not sel.any():
+                continue
+            f = face[sel]
+            part[sel] = caster.mesh.face_part[f] + off
+            material[sel] = caster.mesh.face_material[f]
+            if dyn:
+                dynamic[sel] = True
+                glob[sel] = f + len(self.scene.static_mesh())
+        return Crossings(ray, dist, part, material, dynamic, glob)
 
     def line_of_sight(self, a, b, include_dynamic: bool = True) -> np.ndarray:
         """(n,) bool: nothing lies between a[i] and b[i]."""
