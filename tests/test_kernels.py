@@ -363,7 +363,7 @@ def test_fdl_mac_add():
     np.testing.assert_allclose(whole, ref, rtol=1e-5, atol=1e-5)
 
 
-def test_long_close_or_into_and_pick_slots():
+def test_long_close_take_play_and_pick_slots():
     G, L = 5, 8
     frame = RNG.normal(size=(G, 2 * L)).astype(np.float32)
     col = RNG.normal(size=(G, L)).astype(np.float32)
@@ -380,8 +380,24 @@ def test_long_close_or_into_and_pick_slots():
     np.testing.assert_array_equal(frame, want)
     assert list(last) == [True, True, False, False, False] and not this.any()
     flags = np.array([True, False, False])
-    LK.or_into(flags, np.array([False, True, False]))
+    x = RNG.normal(size=(3, 4)).astype(np.float32)
+    col3 = np.zeros((3, 12), np.float32)
+    LK.long_take(x, col3, 4, np.array([False, True, False]), flags)
     assert list(flags) == [True, True, False]
+    np.testing.assert_array_equal(col3[:, 4:8], x)
+    assert not col3[:, :4].any() and not col3[:, 8:].any()
+    S, E, Lh, B = 3, 2, 16, 4
+    y = RNG.normal(size=(2, S, E, Lh)).astype(np.float32)
+    ready, a, b = np.array([2, -1, 0]), np.array([0.5, 0.0, 0.2]), np.array([0.3, 0.9, 1e-5])
+    out = RNG.normal(size=(E, B))
+    want = out.copy()
+    for s in range(S):
+        k = ready[s]
+        if k >= 0 and (a[k] > 1e-4 or b[k] > 1e-4):
+            want += 0.1 * y[1, s, :, 9:9 + B] * (a[k] + (b[k] - a[k]) * (np.arange(B) + 1) / B) * \
+                (1.0 + (0.5 - 1.0) * (np.arange(B) + 1) / B)
+    LK.long_play(y, 1, 9, ready, a, b, 1.0, 0.5, 0.1, out)
+    np.testing.assert_allclose(out, want, rtol=1e-6)
     w0, w1 = np.array([0.0, 0.3, 0.0, 0.9, 1e-5]), np.array([0.0, 0.2, 0.5, 0.0, 1e-5])
     slots = np.empty(4, np.int64)
     LK.pick_slots(w0, w1, slots)

@@ -286,13 +286,6 @@ def long_close(frame, col, live_last, live_col, live, order):
 
 
 @njit(**_opts)
-def or_into(flags, more):
-    """flags[g] |= more[g]."""
-    for g in range(len(flags)):
-        flags[g] = flags[g] or more[g]
-
-
-@njit(**_opts)
 def pick_slots(w0, w1, slot_of):
     """The tails a period of long partitions computes: slot_of[s] = the tail with the s-th largest max(w0, w1)
     above 1e-4 (-1 past the last such tail)."""
@@ -311,3 +304,31 @@ def pick_slots(w0, w1, slot_of):
             if not taken:
                 best = v
                 slot_of[s] = k
+
+
+@njit(**_opts)
+def long_play(y, play, start, ready, w0, w1, lv0, lv1, scale, out):
+    """A period's long partitions played out: out[e, t] += scale (w0[k] + (w1[k] - w0[k]) r) (lv0 + (lv1 - lv0) r)
+    y[play, s, e, start + t] for every slot s whose tail k = ready[s] is mixed in (w0[k] or w1[k] above 1e-4),
+    r = (t + 1) / B: :func:`mix_ramped` over the slots in one call. y (2, S, E, 2 L)."""
+    E, B = out.shape
+    for s in range(len(ready)):
+        k = ready[s]
+        if k < 0 or (w0[k] <= 1e-4 and w1[k] <= 1e-4):
+            continue
+        a, b = w0[k], w1[k]
+        for t in range(B):
+            r = (t + 1) / B
+            g = scale * (a + (b - a) * r) * (lv0 + (lv1 - lv0) * r)
+            for e in range(E):
+                out[e, t] += g * y[play, s, e, start + t]
+
+
+@njit(**_opts)
+def long_take(x, col, start, live, live_col):
+    """A block of the groups' sends into the period's columns: col[:, start:start + B] = x, live_col |= live."""
+    G, B = x.shape
+    for g in range(G):
+        for t in range(B):
+            col[g, start + t] = x[g, t]
+        live_col[g] = live_col[g] or live[g]

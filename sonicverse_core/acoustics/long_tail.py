@@ -46,7 +46,6 @@ class LongPartitions:
         self.t = 0
         G = groups
         self.col = np.zeros((G, L), np.float32)  # this period's sends, a block at a time
-        self._cols = [self.col[:, i * B:(i + 1) * B] for i in range(m)]
         self.frame = np.zeros((G, 2 * L), np.float32)  # [last period | this period], transformed group by group
         self.X = np.zeros((G, nf), np.complex64)
         self._fwd = [Plan(self.frame[g], self.X[g]) for g in range(G)]
@@ -64,15 +63,11 @@ class LongPartitions:
         # over the period's last blocks, while its other blocks still play the older one)
         self.y = np.zeros((2, S, 2, 2 * L), np.float32)
         self._inv = [[Plan(self.acc[s], self.y[b, s], inverse=True) for s in range(S)] for b in range(2)]
-        self._views = [[[self.y[b, s, :, L + i * B:L + (i + 1) * B] for i in range(m)] for s in range(S)]
-                       for b in range(2)]
         if HLd is not None:
             self.acc_d = np.zeros((S, 1, nf), np.complex64)
             self.Yd = np.zeros((S, 2, nf), np.complex64)
             self.yd = np.zeros((2, S, 2, 2 * L), np.float32)
             self._inv_d = [[Plan(self.Yd[s], self.yd[b, s], inverse=True) for s in range(S)] for b in range(2)]
-            self._views_d = [[[self.yd[b, s, :, L + i * B:L + (i + 1) * B] for i in range(m)] for s in range(S)]
-                             for b in range(2)]
             self.gains = np.zeros((2, nf), np.complex64)  # the directional share's per-ear gains over these bins
             self._gains_of = (None, -1)  # the ears (and their version) they were made for
             self._bins_own = self.bins.copy()  # a kernel's own (the shared one is read-only)
@@ -95,17 +90,18 @@ class LongPartitions:
     def _warm(self) -> None:
         """Compile (or load) the per-block kernels now, on these buffers' types, changing nothing: one first called in
         a real-time callback would stall it for as long as numba takes (the reverb's own kernels likewise)."""
-        from sonicverse_core.acoustics.late_kernels import (fdl_fill, fdl_mac_add, long_close, mix_ramped, or_into,
+        from sonicverse_core.acoustics.late_kernels import (fdl_fill, fdl_mac_add, long_close, long_play, long_take,
                                                             pick_slots, portal_curve)
 
         long_close(self.frame, self.col, self.live_last, self.live_col, self.live, self.order)
-        or_into(self.live_col, self.live_col)
+        long_take(self.col[:, :self.B], self.col, 0, self.live_col, self.live_col)
         w = np.zeros(len(self.HL))
         pick_slots(w, w, self.slot_of)
         fdl_fill(self.X, self.curves, self.live, False, self.fdl[0])
         fdl_mac_add(self.fdl, self.HL[0], 0, 0, 0, self.acc[0])
-        mix_ramped(self._views[0][0][0], 0.0, 0.0, 0.0, 0.0, 0.0, np.zeros((2, self.B)))
+        long_play(self.y, 0, 0, self.ready, w, w, 0.0, 0.0, 0.0, np.zeros((2, self.B)))
         if self.HLd is not None:
+            long_play(self.yd, 0, 0, self.ready, w, w, 0.0, 0.0, 0.0, np.zeros((2, self.B)))
             fdl_mac_add(self.fdl, self.HLd[0], 0, 0, 0, self.acc_d[0])
             portal_curve(np.zeros((2, self.bins.shape[0])), 0.0, self._bins_own, self.gains)
 
@@ -124,20 +120,16 @@ class LongPartitions:
         into ``dacc`` when ``ears``), mixed with the tails' weights ramped from ``w0`` to ``w1`` and the late level
         from ``lv0`` to ``lv1``; take in the groups' sends ``x`` (G, B) (``live``: the groups with sound in this
         block or the last); do this block's share of the period's work."""
-        from sonicverse_core.acoustics.late_kernels import (fdl_fill, fdl_mac_add, long_close, mix_ramped, or_into,
+        from sonicverse_core.acoustics.late_kernels import (fdl_fill, fdl_mac_add, long_close, long_play, long_take,
                                                             pick_slots)
 
         m, F = self.m, self.F
         ph = (self.t + self.phase) % m
         self.t += 1
-        views, views_d = self._views[self.play], self._views_d[self.play] if self.HLd is not None else None
-        for s in range(len(self.ready)):
-            k = self.ready[s]
-            if k < 0 or (w0[k] <= 1e-4 and w1[k] <= 1e-4):
-                continue
-            mix_ramped(views[s][ph], float(w0[k]), float(w1[k]), lv0, lv1, self.scale * diffuse, out)
-            if self.dir_ready and ears is not None:
-                mix_ramped(views_d[s][ph], float(w0[k]), float(w1[k]), lv0, lv1, self.scale, dacc)
+        start = self.L + ph * self.B  # this block's part of the last period's output (the valid half)
+        long_play(self.y, self.play, start, self.ready, w0, w1, lv0, lv1, self.scale * diffuse, out)
+        if self.dir_ready and ears is not None:
+            long_play(self.yd, self.play, start, self.ready, w0, w1, lv0, lv1, self.scale, dacc)
         if ph == 0:  # the last period's sends are complete: this period computes their long partitions
             self.n_live = long_close(self.frame, self.col, self.live_last, self.live_col, self.live, self.order)
             self.quiet = 0 if self.n_live else min(self.quiet + 1, self.Q + 1)
@@ -151,8 +143,7 @@ class LongPartitions:
                     self.acc[s].fill(0)
                     if self.dir_on:
                         self.acc_d[s].fill(0)
-        np.copyto(self._cols[ph], x)
-        or_into(self.live_col, live)
+        long_take(x, self.col, ph * self.B, live, self.live_col)
         quiet = self.quiet > self.Q  # silence in every row of the delay line (the Q-th silent period zeroed the
         # last row that had sound): nothing to compute, nothing to play
         a, b = self._work[ph]
