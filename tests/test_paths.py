@@ -305,6 +305,39 @@ def test_bench_accuracy_scattering_knob_parts_eyring_and_the_peer():
     assert rows["vector"]["error_vs_pyroomacoustics"] < 0.2 < rows["stochastic"]["error_vs_pyroomacoustics"]
 
 
+def test_the_utd_reference_of_bench_accuracys_diffraction_knob():
+    """The reference the diffraction knob scores the bend loss against (UTD, a rigid wedge): a half-plane's shadow
+    boundary takes half the incident field (6.02 dB) as the frequency grows, the loss is reciprocal, and deep in
+    the shadow it grows by about 3 dB per octave (the diffracted field falls as 1 / sqrt(k))."""
+    from app.bench.accuracy import utd_transition, utd_wedge_loss_db
+
+    assert abs(utd_transition(1e6) - 1) < 1e-5 and abs(utd_transition(1e-8)) < 1e-3
+    phs, shadow = np.radians(45.0), np.radians(225.0 + 1e-6)
+    assert utd_wedge_loss_db(3.0, 2.0, phs, shadow, 1e6, 2.0) == pytest.approx(6.02, abs=0.15)
+    a = utd_wedge_loss_db(3.0, 2.0, np.radians(30.0), np.radians(250.0), 1000.0, 1.5)
+    b = utd_wedge_loss_db(2.0, 3.0, np.radians(250.0), np.radians(30.0), 1000.0, 1.5)
+    assert a == pytest.approx(b, abs=1e-9)
+    f = np.array([1000.0, 2000.0, 4000.0])
+    deep = utd_wedge_loss_db(3.0, 3.0, np.radians(45.0), np.radians(300.0), f, 2.0)
+    np.testing.assert_allclose(np.diff(deep), 3.0, atol=0.3)
+    # the paths' Fresnel bend loss, 10 log10(1 + 20 N), there: about 1.7 dB more (README, the diffraction knob)
+    ps, pl = 3.0 * np.array([np.cos(np.radians(45.0)), np.sin(np.radians(45.0))]), \
+        3.0 * np.array([np.cos(np.radians(300.0)), np.sin(np.radians(300.0))])
+    N = 2 * (6.0 - np.linalg.norm(ps - pl)) * f / 343.0
+    np.testing.assert_allclose(10 * np.log10(1 + 20 * N) - deep, 1.7, atol=0.2)
+
+
+def test_bench_accuracy_diffraction_knob_against_the_utd():
+    """README (bench accuracy, diffraction model): round the L-room's corner the paths' Fresnel bend loss is within
+    3 dB of the UTD's per band on average (it takes about 2.5 dB too much), no bend loss 9-10 dB off."""
+    from app.bench.accuracy import _diffraction
+
+    rows = {r["setting"]: r for r in _diffraction(quick=True)["rows"]}
+    assert set(rows) == {"fresnel", "none"} and rows["fresnel"]["pairs"] >= 30
+    assert 1.5 < rows["fresnel"]["error"] < 3.0 and rows["none"]["error"] > 8.0
+    assert np.all(np.diff(rows["none"]["utd_loss_per_band_db"]) > 0)  # the loss grows with frequency
+
+
 def test_a_rooms_own_walls_reflect_as_their_materials_and_its_doorway_only_when_the_door_is_shut():
     from sonicverse_core.acoustics.early import RoomWalls, wall_reflectance
     from sonicverse_core.geometry.raycast import SceneRayCaster
