@@ -166,3 +166,25 @@ def test_bench_accuracy_reverb_knob_has_both_partitionings_with_the_same_decay()
     np.testing.assert_allclose(rows["convolution"]["rt60_measured"], rows["convolution uniform"]["rt60_measured"],
                                atol=1e-3)
     assert rows["convolution"]["error"] < 0.1
+
+
+def test_the_longest_tail_at_the_finest_blocks():
+    """An extreme a user can ask for: an 8 s tail (the synthesis' cap; RT60 up to 60 s) at 96 kHz in 64-frame blocks
+    is 12,000 partitions: long partitions of 64 blocks (the cap), 16 blocks transforming each period. The same
+    output as one-block partitions, finite, with the same energy in both ears."""
+    rt = [np.full(len(BANDS), 60.0)]
+    fs, b, n = 96_000, 64, 420
+    outs = []
+    for partitions in ("uniform", "auto"):
+        rev = ConvolutionReverb(fs, b, rt, seconds=8.0, partitions=partitions)
+        rng, y = np.random.default_rng(2), []
+        for t in range(n):
+            y.append(rev.process(rng.normal(size=(1, b)).astype(np.float32) * (t < 100), np.ones(1),
+                                 out=np.zeros((2, b))))
+        outs.append(np.concatenate(y, axis=1))
+    assert rev.m == 64 and rev.long.F == 16 and rev.long.Q == 186
+    a, c = outs
+    assert np.all(np.isfinite(c)) and np.abs(c[:, 2 * 64 * b:]).max() > 0  # the long partitions play
+    assert _rel_db(c, a) < -100
+    e = np.sum(c[:, 2 * 64 * b:] ** 2, axis=1)
+    assert abs(10 * np.log10(e[0] / e[1])) < 1.0
