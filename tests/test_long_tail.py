@@ -47,6 +47,11 @@ def test_the_split_follows_the_tails_length():
     assert rev.m == 8 and rev.P == 16 and rev.long.Q == 28  # 16 + 8 x 28 = 240 blocks: the whole tail
     with pytest.raises(ValueError):
         ConvolutionReverb(FS, B, RT, partitions="long")
+    from sonicverse_core.acoustics.config import RenderConfig
+    from sonicverse_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="tail_partitions"):
+        RenderConfig(tail_partitions="long")
 
 
 @pytest.mark.parametrize("weights", [None, lambda t: np.array([0.5 + 0.5 * np.sin(t / 50), 0.5 - 0.5 * np.sin(t / 50)])],
