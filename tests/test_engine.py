@@ -312,21 +312,27 @@ def test_cli_bench_audio_reports_realtime_fraction(cli):
 
 def test_bench_audio_times_blocks_without_the_collector_and_restores_it(monkeypatch):
     """bench audio renders its timed blocks as the live audio workers do, with the garbage collector off (checked
-    inside the render), and leaves it as it found it."""
+    inside the render) and its kernels warmed before the first block, and leaves the collector as it found it."""
     import gc
 
     from app.bench.engine import bench_audio
     from sonicverse_core.acoustics.renderer import AcousticRenderer
 
-    seen = []
-    render = AcousticRenderer.render_block
+    seen, warmed = [], []
+    render, warm = AcousticRenderer.render_block, AcousticRenderer.warm_kernels
 
     def spy(self, *a, **k):
         seen.append(gc.isenabled())
         return render(self, *a, **k)
 
+    def warm_spy(self):
+        warmed.append(len(seen))
+        return warm(self)
+
     monkeypatch.setattr(AcousticRenderer, "render_block", spy)
+    monkeypatch.setattr(AcousticRenderer, "warm_kernels", warm_spy)
     assert gc.isenabled()
     d = bench_audio(2, 0.1, "shoebox:6x4x3", reference_blocks=1)
     assert gc.isenabled() and seen and not any(seen)
     assert d["garbage_collector"].startswith("frozen and off")
+    assert warmed == [0] and d["kernels"].startswith("warmed")  # as the live workers: before the first block
