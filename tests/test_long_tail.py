@@ -193,3 +193,25 @@ def test_the_longest_tail_at_the_finest_blocks():
     assert _rel_db(c, a) < -100
     e = np.sum(c[:, 2 * 64 * b:] ** 2, axis=1)
     assert abs(10 * np.log10(e[0] / e[1])) < 1.0
+
+
+def test_listeners_transform_in_other_blocks_and_hear_the_same():
+    """Listeners rendered in one callback (robots) do their long partitions' transforms in other blocks of the period
+    (their reverbs are staggered by the golden section); two listeners at the same place still hear the same."""
+    from sonicverse_core.acoustics.probes import Probe
+    from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
+
+    dims = np.array([8.0, 6.0, 3.0])
+    probe = Probe(dims / 2, np.full(9, 1.2), np.full(9, 1.2), np.zeros(3), dims, ("PlasterRough",) * 6, 1.0)
+    r = AcousticRenderer(None, RenderConfig(occlusion=False, early_reflections=False), probes=[probe])
+    r.add_source(np.random.default_rng(0).normal(size=48000).astype(np.float32) * 0.1, (2.0, 2.0, 1.5))
+    for _ in range(3):
+        r.add_listener((5.0, 4.0, 1.5))
+    out = [[], [], []]
+    for _ in range(300):
+        for k, y in enumerate(r.render_block()):
+            out[k].append(y)
+    phases = [st.late.conv.long.phase for st in r._state]
+    assert len(set(phases)) == 3, phases
+    a, b, c = (np.concatenate(o, axis=1).astype(np.float64) for o in out)
+    assert _rel_db(b, a) < -100 and _rel_db(c, a) < -100

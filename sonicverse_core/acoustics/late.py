@@ -177,6 +177,7 @@ class LateReverb:
         self._colour = None
         self._portal_table = None
         self._apart_key, self._apart_val = None, ()  # _apart's answer for (coupling state, listener's room)
+        self._listeners = 0  # listener states made (their reverbs' long partitions are staggered)
 
     # --- the subsystem protocol ----------------------------------------------------------------------------------
     def state(self, cap: int) -> LateState:
@@ -210,14 +211,19 @@ class LateReverb:
             from sonicverse_core.acoustics.reverb import ConvolutionReverb
 
             seed = cfg.tail_seed * SEED_STRIDE
-            part = {"partitions": cfg.tail_partitions}  # each reverb transforms its long partitions in other blocks
+            part = {"partitions": cfg.tail_partitions}
+            # each reverb transforms its long partitions in other blocks of the period than the listener's other
+            # reverbs and than the other listeners' (those render in the same callback: robots)
+            at = (self._listeners * 0.381966) % 1.0  # the golden section: listeners spread over the period
+            self._listeners += 1
             st.conv = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed, groups=self.groups,
-                                        probe_edts=self.tail_edt, stagger=0.0, **part, **self.tail_colour())
+                                        probe_edts=self.tail_edt, stagger=at, **part, **self.tail_colour())
             if self.modal:  # the coupled rooms' slowest mode: its own input (its shapes differ per group) and
                 # its own noise (tails of other seeds: the two add in energy, not in amplitude)
                 st.conv_slow = ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=SLOW_SEED + seed,
                                                  probe_edts=self.tail_edt, groups=self.groups,
-                                                 direct=cfg.output != "mono", direct_seed=seed, stagger=0.5,
+                                                 direct=cfg.output != "mono", direct_seed=seed,
+                                                 stagger=(at + 0.5) % 1.0,
                                                  **part, **self.tail_colour())
                 st.ears = PortalEars(cfg.block)  # the slow tail's direction
                 # rooms beyond two: the modes that ring in yet other rooms, each heard from its doorway. Their
@@ -226,7 +232,7 @@ class LateReverb:
                 st.more = [NeighbourTail(ConvolutionReverb(cfg.sample_rate, cfg.block, self.tail_rt, seed=seed,
                                                            probe_edts=self.tail_edt, groups=self.groups,
                                                            direct=cfg.output != "mono", direct_seed=seed,
-                                                           stagger=(0.25, 0.75, 0.125, 0.375)[j], **part,
+                                                           stagger=(at + (0.25, 0.75, 0.125, 0.375)[j]) % 1.0, **part,
                                                            **self.tail_colour()),
                                          cfg.block, build_up())
                            for j in range(extra)]
