@@ -346,66 +346,6 @@ def test_fdl_mac():
     np.testing.assert_allclose(out, np.einsum("pf,pef->ef", fdl, H[3:3 + P]), rtol=1e-4, atol=1e-4)
 
 
-def test_fdl_mac_add():
-    """A range of the delay line's rows, added into what the output holds (a long partition's share of a period)."""
-    P, F = 7, 17
-    fdl = (RNG.normal(size=(P, F)) + 1j * RNG.normal(size=(P, F))).astype(np.complex64)
-    H = (RNG.normal(size=(2 * P, 2, F)) + 1j * RNG.normal(size=(2 * P, 2, F))).astype(np.complex64)
-    start = (RNG.normal(size=(2, F)) + 1j * RNG.normal(size=(2, F))).astype(np.complex64)
-    out = start.copy()
-    LK.fdl_mac_add(fdl, H, 3, 2, 5, out)
-    np.testing.assert_allclose(out, start + np.einsum("pf,pef->ef", fdl[2:5], H[5:8]), rtol=1e-4, atol=1e-4)
-    whole = np.zeros((2, F), np.complex64)
-    for a, b in ((0, 3), (3, 3), (3, 7)):  # in shares, the whole
-        LK.fdl_mac_add(fdl, H, 3, a, b, whole)
-    ref = np.empty((2, F), np.complex64)
-    LK.fdl_mac(fdl, H, 3, ref)
-    np.testing.assert_allclose(whole, ref, rtol=1e-5, atol=1e-5)
-
-
-def test_long_close_take_play_and_pick_slots():
-    G, L = 5, 8
-    frame = RNG.normal(size=(G, 2 * L)).astype(np.float32)
-    col = RNG.normal(size=(G, L)).astype(np.float32)
-    last = np.array([True, False, True, False, False])
-    this = np.array([True, True, False, False, False])
-    want = frame.copy()
-    for g in range(G):
-        if last[g] or this[g]:
-            want[g, :L] = frame[g, L:] if last[g] else 0.0
-            want[g, L:] = col[g]
-    live, order = np.zeros(G, bool), np.full(G, -1, np.int64)
-    n = LK.long_close(frame, col, last, this, live, order)
-    assert n == 3 and list(order[:n]) == [0, 1, 2] and list(live) == [True, True, True, False, False]
-    np.testing.assert_array_equal(frame, want)
-    assert list(last) == [True, True, False, False, False] and not this.any()
-    flags = np.array([True, False, False])
-    x = RNG.normal(size=(3, 4)).astype(np.float32)
-    col3 = np.zeros((3, 12), np.float32)
-    LK.long_take(x, col3, 4, np.array([False, True, False]), flags)
-    assert list(flags) == [True, True, False]
-    np.testing.assert_array_equal(col3[:, 4:8], x)
-    assert not col3[:, :4].any() and not col3[:, 8:].any()
-    S, E, Lh, B = 3, 2, 16, 4
-    y = RNG.normal(size=(2, S, E, Lh)).astype(np.float32)
-    ready, a, b = np.array([2, -1, 0]), np.array([0.5, 0.0, 0.2]), np.array([0.3, 0.9, 1e-5])
-    out = RNG.normal(size=(E, B))
-    want = out.copy()
-    for s in range(S):
-        k = ready[s]
-        if k >= 0 and (a[k] > 1e-4 or b[k] > 1e-4):
-            want += 0.1 * y[1, s, :, 9:9 + B] * (a[k] + (b[k] - a[k]) * (np.arange(B) + 1) / B) * \
-                (1.0 + (0.5 - 1.0) * (np.arange(B) + 1) / B)
-    LK.long_play(y, 1, 9, ready, a, b, 1.0, 0.5, 0.1, out)
-    np.testing.assert_allclose(out, want, rtol=1e-6)
-    w0, w1 = np.array([0.0, 0.3, 0.0, 0.9, 1e-5]), np.array([0.0, 0.2, 0.5, 0.0, 1e-5])
-    slots = np.empty(4, np.int64)
-    LK.pick_slots(w0, w1, slots)
-    assert list(slots) == [3, 2, 1, -1]  # by max(w0, w1), none at or below 1e-4
-    LK.pick_slots(w0, w1, slots[:2])
-    assert list(slots[:2]) == [3, 2]
-
-
 def test_tail_partitions_reach_fdl_mac_in_c_order_whatever_order_the_fft_returns(monkeypatch):
     """NumPy 2's FFT returns its output in its input's memory order; the tail's partitions are cut from a transposed
     view, so they came out channel-outermost and fdl_mac (the callback's heaviest loop) compiled for a strided
@@ -571,7 +511,8 @@ def test_every_kernel_has_a_twin():
     """A kernel added without a twin fails here."""
     import inspect
 
-    here = open(__file__).read() + open(__file__.replace("test_kernels.py", "test_engine.py")).read()
+    here = "".join(open(__file__.replace("test_kernels.py", f)).read()
+                   for f in ("test_kernels.py", "test_engine.py", "test_long_tail.py"))
     # K's private _tap (inside gather's twin), _image, _sh9 (inside image_taps' and room_image_taps' twins); EK's
     # _blocked and _inside (inside room_image_taps' twin)
     for mod, prefix, private in ((K, "K", 3), (LK, "LK", 0), (EK, "EK", 2)):

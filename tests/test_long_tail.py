@@ -1,16 +1,19 @@
 """Long partitions of the convolution tails (``RenderConfig.tail_partitions="auto"``, sonicverse_core/acoustics/
 long_tail.py): the same convolution as one-block partitions, the work spread over the blocks, silence computing
-nothing, and the differences the module's docstring names measured."""
+nothing, the differences the module's docstring names measured, and its compiled kernels against their NumPy twins
+(tests/test_kernels.py's twin check reads this file too)."""
 import numpy as np
 import pytest
 from scipy.signal import butter, sosfilt
 
+from sonicverse_core.acoustics import late_kernels as LK
 from sonicverse_core.acoustics.fft import band_bins
 from sonicverse_core.acoustics.reverb import ConvolutionReverb, PortalEars, long_split
 from sonicverse_core.scene.materials import BANDS
 
 FS, B = 48000, 256
 RT = [np.full(len(BANDS), 1.2), np.linspace(1.5, 0.6, len(BANDS))]  # two tails: 240 blocks, long partitions of 8
+_RNG = np.random.default_rng(11)
 SHAPES = np.vstack([np.ones(len(BANDS)), np.linspace(0.2, 1.0, len(BANDS)), np.linspace(1.0, 0.1, len(BANDS))])
 
 
@@ -215,3 +218,63 @@ def test_listeners_transform_in_other_blocks_and_hear_the_same():
     assert len(set(phases)) == 3, phases
     a, b, c = (np.concatenate(o, axis=1).astype(np.float64) for o in out)
     assert _rel_db(b, a) < -100 and _rel_db(c, a) < -100
+
+
+def test_fdl_mac_add():
+    """A range of the delay line's rows, added into what the output holds (a long partition's share of a period)."""
+    P, F = 7, 17
+    fdl = (_RNG.normal(size=(P, F)) + 1j * _RNG.normal(size=(P, F))).astype(np.complex64)
+    H = (_RNG.normal(size=(2 * P, 2, F)) + 1j * _RNG.normal(size=(2 * P, 2, F))).astype(np.complex64)
+    start = (_RNG.normal(size=(2, F)) + 1j * _RNG.normal(size=(2, F))).astype(np.complex64)
+    out = start.copy()
+    LK.fdl_mac_add(fdl, H, 3, 2, 5, out)
+    np.testing.assert_allclose(out, start + np.einsum("pf,pef->ef", fdl[2:5], H[5:8]), rtol=1e-4, atol=1e-4)
+    whole = np.zeros((2, F), np.complex64)
+    for a, b in ((0, 3), (3, 3), (3, 7)):  # in shares, the whole
+        LK.fdl_mac_add(fdl, H, 3, a, b, whole)
+    ref = np.empty((2, F), np.complex64)
+    LK.fdl_mac(fdl, H, 3, ref)
+    np.testing.assert_allclose(whole, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_long_close_take_play_and_pick_slots():
+    G, L = 5, 8
+    frame = _RNG.normal(size=(G, 2 * L)).astype(np.float32)
+    col = _RNG.normal(size=(G, L)).astype(np.float32)
+    last = np.array([True, False, True, False, False])
+    this = np.array([True, True, False, False, False])
+    want = frame.copy()
+    for g in range(G):
+        if last[g] or this[g]:
+            want[g, :L] = frame[g, L:] if last[g] else 0.0
+            want[g, L:] = col[g]
+    live, order = np.zeros(G, bool), np.full(G, -1, np.int64)
+    n = LK.long_close(frame, col, last, this, live, order)
+    assert n == 3 and list(order[:n]) == [0, 1, 2] and list(live) == [True, True, True, False, False]
+    np.testing.assert_array_equal(frame, want)
+    assert list(last) == [True, True, False, False, False] and not this.any()
+    flags = np.array([True, False, False])
+    x = _RNG.normal(size=(3, 4)).astype(np.float32)
+    col3 = np.zeros((3, 12), np.float32)
+    LK.long_take(x, col3, 4, np.array([False, True, False]), flags)
+    assert list(flags) == [True, True, False]
+    np.testing.assert_array_equal(col3[:, 4:8], x)
+    assert not col3[:, :4].any() and not col3[:, 8:].any()
+    S, E, Lh, B = 3, 2, 16, 4
+    y = _RNG.normal(size=(2, S, E, Lh)).astype(np.float32)
+    ready, a, b = np.array([2, -1, 0]), np.array([0.5, 0.0, 0.2]), np.array([0.3, 0.9, 1e-5])
+    out = _RNG.normal(size=(E, B))
+    want = out.copy()
+    for s in range(S):
+        k = ready[s]
+        if k >= 0 and (a[k] > 1e-4 or b[k] > 1e-4):
+            want += 0.1 * y[1, s, :, 9:9 + B] * (a[k] + (b[k] - a[k]) * (np.arange(B) + 1) / B) * \
+                (1.0 + (0.5 - 1.0) * (np.arange(B) + 1) / B)
+    LK.long_play(y, 1, 9, ready, a, b, 1.0, 0.5, 0.1, out)
+    np.testing.assert_allclose(out, want, rtol=1e-6)
+    w0, w1 = np.array([0.0, 0.3, 0.0, 0.9, 1e-5]), np.array([0.0, 0.2, 0.5, 0.0, 1e-5])
+    slots = np.empty(4, np.int64)
+    LK.pick_slots(w0, w1, slots)
+    assert list(slots) == [3, 2, 1, -1]  # by max(w0, w1), none at or below 1e-4
+    LK.pick_slots(w0, w1, slots[:2])
+    assert list(slots[:2]) == [3, 2]
