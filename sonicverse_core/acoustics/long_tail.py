@@ -25,6 +25,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from sonicverse_core.acoustics.fft import Plan, band_bins
+from sonicverse_core.acoustics.late_kernels import (fdl_fill, fdl_mac_add, long_close, long_play, long_take, pick_slots,
+                                                    portal_curve)
+
 SLOTS = 4  # tails a period computes at most: a listener mixes two probes, each between doors open and shut
 
 
@@ -35,8 +39,6 @@ class LongPartitions:
     all transform in the same block."""
 
     def __init__(self, sample_rate: int, block: int, m: int, groups: int, HL, HLd=None, stagger: float = 0.0):
-        from sonicverse_core.acoustics.fft import Plan, band_bins
-
         self.B, self.m = B, m = block, m
         self.L = L = m * block
         self.Q = Q = len(HL[0]) // 2
@@ -90,9 +92,6 @@ class LongPartitions:
     def _warm(self) -> None:
         """Compile (or load) the per-block kernels now, on these buffers' types, changing nothing: one first called in
         a real-time callback would stall it for as long as numba takes (the reverb's own kernels likewise)."""
-        from sonicverse_core.acoustics.late_kernels import (fdl_fill, fdl_mac_add, long_close, long_play, long_take,
-                                                            pick_slots, portal_curve)
-
         long_close(self.frame, self.col, self.live_last, self.live_col, self.live, self.order)
         long_take(self.col[:, :self.B], self.col, 0, self.live_col, self.live_col)
         w = np.zeros(len(self.HL))
@@ -120,9 +119,6 @@ class LongPartitions:
         into ``dacc`` when ``ears``), mixed with the tails' weights ramped from ``w0`` to ``w1`` and the late level
         from ``lv0`` to ``lv1``; take in the groups' sends ``x`` (G, B) (``live``: the groups with sound in this
         block or the last); do this block's share of the period's work."""
-        from sonicverse_core.acoustics.late_kernels import (fdl_fill, fdl_mac_add, long_close, long_play, long_take,
-                                                            pick_slots)
-
         m, F = self.m, self.F
         ph = (self.t + self.phase) % m
         self.t += 1
@@ -174,8 +170,6 @@ class LongPartitions:
     def _inverse(self, a: int, b: int, ears, first: bool) -> None:
         """Inverse transforms ``a``..``b`` - 1 of the period (j < S: slot j's own channels; S + j: its directional
         ones) into the buffer not being played; ``first``: the period's first (the directional gains are made)."""
-        from sonicverse_core.acoustics.late_kernels import portal_curve
-
         if first and self.dir_on:
             if ears is None:
                 self.dir_on = False

@@ -101,14 +101,6 @@ class RayCaster:
         h = self.first_hit(o, d, maxd)
         return h.face, h.distance
 
-    def faces_f32(self, o: np.ndarray, d32: np.ndarray, maxd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`faces` with the directions already float32 (a walk along segments converts them once)."""
-        if self.backend == "embree":
-            res = self._impl.run(o.astype(np.float32), d32, dists=np.minimum(maxd, 3.0e38).astype(np.float32),
-                                 output=1)
-            return res["primID"].astype(np.int64), res["tfar"].astype(np.float64)
-        return self.faces(o, d32.astype(np.float64), maxd)
-
     def first_hit(self, origins, directions, max_distance=np.inf) -> Hits:
         """First surface hit by each ray (directions are normalised) within ``max_distance`` (scalar or (n,))."""
         o, d = _as_rays(origins, directions)
@@ -199,16 +191,16 @@ class SceneRayCaster:
             if caster.empty:
                 continue
             active, d, travelled = start, d0, np.zeros(len(start))
-            o, left, d32 = a[start], length[start], d0.astype(np.float32)
+            o, left = a[start], length[start]
             for _ in range(max_hits):
                 if len(active) == 0:
                     break
-                face, dist = caster.faces_f32(o + d * travelled[:, None], d32, left - travelled)
+                face, dist = caster.faces(o + d * travelled[:, None], d, left - travelled)
                 hit = face >= 0
                 if not hit.all():
                     if not hit.any():
                         break
-                    active, d, d32, o, left = active[hit], d[hit], d32[hit], o[hit], left[hit]
+                    active, d, o, left = active[hit], d[hit], o[hit], left[hit]
                     travelled, face, dist = travelled[hit], face[hit], dist[hit]
                 t = travelled + dist
                 rays.append(active)
