@@ -9,7 +9,7 @@ from __future__ import annotations
 _LEARNED = {"av-nav": "agents.learned:AVNavAgent", "av-nav-greedy": "agents.learned:AVNavGreedy",
             "savi": "agents.learned:SAViAgent", "multitask": "agents.learned:MultitaskAgent"}
 _NAV = {"random": "agents.scripted:RandomAgent", "oracle": "agents.scripted:OracleAgent",
-        "gan": "agents.scripted:GanAgent", "gan-itd": "agents.scripted:GanItdAgent",
+        "gan": "agents.gan:GanAgent", "gan-itd": "agents.scripted:GanItdAgent",
         "sem-nav": "agents.semnav:SemNavAgent", **_LEARNED}
 # agents that load a checkpoint (``checkpoint=``; default agents/checkpoints/ARCH_TASK.pt)
 LEARNED = {"av-nav", "av-nav-greedy", "savi", "multitask"}

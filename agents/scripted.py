@@ -9,9 +9,10 @@ passed in.
   (privileged: it reads ``env.privileged()["at_goal"]``; the AudioGoal tasks end there by themselves).
 * ``oracle`` (privileged: ``world``, ``goals``): drives the geodesic shortest path (string-pulled) with a pursuit
   controller; proves the metrics (SR and SPL near 1).
-* ``gan``: in the spirit of Gan et al. (2020): estimates the sound's direction from the interaural time difference
-  (spinning in place to resolve front from back), triangulates the source from bearings taken at different places,
-  builds an occupancy map from depth, and plans on it (Dijkstra over the map) to the estimate.
+* ``gan-itd``: estimates the sound's direction from the interaural time difference (spinning in place to resolve
+  front from back), triangulates the source from bearings taken at different places, builds an occupancy map from
+  depth, and plans on it (Dijkstra over the map) to the estimate. (``gan`` itself, Gan et al.'s design, is
+  :mod:`agents.gan`; the learned-localiser version before it is :class:`GanLocalizerAgent`.)
 """
 from __future__ import annotations
 
@@ -209,7 +210,8 @@ class MapAgent(Agent):
 class GanItdAgent(MapAgent):
     """Hand-made binaural localisation (interaural delays voted over spins in place, bearings triangulated) + depth
     occupancy map + planner; uses observations only (audio, depth, pose). Kept for comparison as ``gan-itd``: the
-    ``gan`` baseline (:class:`GanAgent`) localises with a learned model, as Gan et al. do."""
+    ``gan`` baseline (:class:`agents.gan.GanAgent`) localises by the level and the level difference between the
+    ears."""
 
     name = "gan-itd"
     ITD_MAX = 0.00066  # s: the KEMAR head's largest interaural delay
@@ -305,9 +307,11 @@ class GanItdAgent(MapAgent):
         return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt))
 
 
-class GanAgent(MapAgent):
-    """Gan et al. (2020): a learned sound localiser (:mod:`agents.localizer`) + an occupancy map from depth + a
-    planner; reads observations only (audio, spectrogram, depth, pose, bump).
+class GanLocalizerAgent(MapAgent):
+    """The ``gan`` baseline of sessions 14-51, kept for comparison (``--agent agents.scripted:GanLocalizerAgent``): a
+    learned sound localiser (:mod:`agents.localizer`) + an occupancy map from depth + a planner; reads observations
+    only (audio, spectrogram, depth, pose, bump). 1.0% SR on SemanticAudioNav and 20.0% on AudioGoal (200 test
+    episodes each, README); :mod:`agents.gan` replaced it.
 
     It turns once on the spot (hearing the sound from every heading), then drives to its estimate of the sound's
     position. Each audible step's prediction votes into a grid over the odometry frame (a Gaussian around the
@@ -321,7 +325,7 @@ class GanAgent(MapAgent):
     action) once the sound has stopped or the localiser hears the object within 0.7 ``NEAR``; on AudioGoal (no stop)
     it circles until the task ends the episode."""
 
-    name = "gan"
+    name = "gan-localizer"
     VOTE_CELL = 0.2  # m
     FADE = 0.98
     STOP_RADIUS = 0.5

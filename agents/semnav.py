@@ -61,6 +61,17 @@ LEVEL_FIT = {"slope": -0.067, "offset": {
     "stool": -0.73, "standing_tv": -0.84, "shower": -0.42, "bathtub": -0.66, "countertop": -1.17}}
 
 
+def fit_bearing(turn) -> float | None:
+    """The bearing (world yaw, radians) a sound comes from, fitted to a turn on the spot's (yaw radians, ILD dB)
+    pairs (:func:`ild`) as ILD = c + A sin(b - yaw) (the left ear louder when the sound is on the left); None from
+    fewer than 8 pairs."""
+    if len(turn) < 8:
+        return None
+    th, d = np.array(turn, float).T
+    coef = np.linalg.lstsq(np.c_[np.ones(len(th)), np.cos(th), -np.sin(th)], d, rcond=None)[0]
+    return math.atan2(coef[1], coef[2]) if math.hypot(coef[1], coef[2]) > 0.0 else None
+
+
 def spin_level(env) -> float:
     """Turn once on the spot in ``env`` (just reset; the task's stop action held off) as :class:`SemNavAgent`
     does, and return the level (dB) it hears after the turn's steps 3 to 20 (the agent acts on step 21's
@@ -193,12 +204,9 @@ class SemNavAgent(MapAgent):
         Over 20 validation episodes its median error to the first 1.5 m of the shortest path was 43 degrees (chance:
         90); to the straight line to the goal, 59."""
         self.spun_at = np.array(p, float)
-        if len(self.turn) < 8:
-            return
-        th, d = np.array(self.turn).T
-        coef = np.linalg.lstsq(np.c_[np.ones(len(th)), np.cos(th), -np.sin(th)], d, rcond=None)[0]
-        if math.hypot(coef[1], coef[2]) > 0.0:
-            self.bearing = math.atan2(coef[1], coef[2])
+        b = fit_bearing(self.turn)
+        if b is not None:
+            self.bearing = b
 
     def _off_bearing(self, xy) -> np.ndarray:
         """Per point, 1 - cos of its angle off the heard bearing as seen from where the robot spun (0: none)."""

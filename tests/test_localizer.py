@@ -1,4 +1,5 @@
-"""The learned sound localiser (agents/localizer.py) and the gan baseline built on it (agents/scripted.GanAgent):
+"""The learned sound localiser (agents/localizer.py) and the agent built on it (agents/scripted.GanLocalizerAgent, the
+gan baseline until session 51; agents/gan.py is now):
 training end to end on a few frames, the shipped model's accuracy on test homes against chance, clear errors for bad
 checkpoints, and the agent reaching sounds it never had privileged access to."""
 import csv
@@ -56,10 +57,10 @@ def test_the_shipped_localiser_is_at_chance_on_steady_sounds_in_reverberant_home
     assert np.histogram(b, bins=4, range=(-180, 180))[0].min() > 300 / 4 * 0.5
 
 
-def test_the_gan_agent_turns_once_then_drives_to_its_estimate():
+def test_the_localiser_agent_turns_once_then_drives_to_its_estimate():
     import math
 
-    from agents.scripted import GanAgent
+    from agents.scripted import GanLocalizerAgent as GanAgent
     from sonicverse_core.tasks import make_env
 
     env = make_env("AudioGoal", split="test", homes=2, sensors=("depth", "audio", "spectrogram", "pose", "bump"))

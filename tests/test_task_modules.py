@@ -58,7 +58,7 @@ class _Blind:
 
 
 @pytest.mark.parametrize("task,agent", [("SpeakerFollowing", "scripted"), ("AudioGoal", "gan"),
-                                        ("SpeakerFollowing", "random")])
+                                        ("SemanticAudioNav", "gan"), ("SpeakerFollowing", "random")])
 def test_sensor_agents_never_read_privileged_state(task, agent):
     from agents import make_agent
 

@@ -92,7 +92,7 @@ def cmd_train(a) -> int:
         if not a.json:
             print(" ".join(f"{k} {v}" for k, v in row.items()), file=sys.stderr)
 
-    if a.agent == "sound-localizer":  # the gan baseline's localiser (supervised, not a policy)
+    if a.agent == "sound-localizer":  # GanLocalizerAgent's localiser (supervised, not a policy)
         from agents.localizer import LocalizerTrainConfig, train as train_localizer
 
         if a.recipe != "dagger" or a.resume or a.homes or a.jobs > 1 or a.dataset_frames != 60_000:
@@ -367,7 +367,8 @@ def add_task_commands(sub, bench_sub) -> None:
                        "confidence intervals; write a per-episode CSV.")
     e.add_argument("--task", required=True, choices=TASK_NAMES, help="the navigation task")
     e.add_argument("--agent", required=True, metavar="AGENT",
-                   help="random, oracle, gan, av-nav (a learned policy), or module:callable (your own policy)")
+                   help="random, oracle, gan, gan-itd, sem-nav, av-nav, savi, multitask (learned policies), or "
+                   "module:callable (your own policy)")
     e.add_argument("--checkpoint", default=None, type=A.in_file(".pt"),
                    help="a learned agent's checkpoint (default: the shipped agents/checkpoints/ARCH_TASK.pt)")
     e.add_argument("--episodes", type=A.count(1, 100_000), default=20, help="number of episodes (default: %(default)s)")
@@ -416,7 +417,7 @@ def add_task_commands(sub, bench_sub) -> None:
                    help="PPO: Adam's learning rate (default: 2.5e-5)")
     t.add_argument("--agent", default="av-nav", choices=("av-nav", "savi", "multitask", "sound-localizer"),
                    help="the model: the AV-Nav policy, SAVi, the multi-task model (SAVi + occupancy anticipation), "
-                   "or the gan baseline's sound localiser (default: %(default)s)")
+                   "or the learned sound localiser of agents.scripted:GanLocalizerAgent (default: %(default)s)")
     t.add_argument("--memory", type=A.count(1, 1000), default=32,
                    help="savi / multitask: steps of scene memory (default: %(default)s)")
     t.add_argument("--task", default="AudioGoal", choices=("AudioGoal", "SemanticAudioNav", "SpeakerFollowing"),
