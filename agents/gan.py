@@ -127,6 +127,12 @@ class GanAgent(MapAgent):
         return {"sensors": ("depth", "spectrogram", "audio", "pose", "bump")}
 
     def reset(self, env, obs, info):
+        missing = [k for k in ("audio", "spectrogram", "pose") if k not in obs]
+        if missing:
+            from sonicverse_core.errors import ConfigError
+
+            raise ConfigError(f"gan needs the env's {', '.join(repr(k) for k in missing)} sensor"
+                              f"{'s' if len(missing) > 1 else ''} (env_kwargs() lists what it reads)")
         super().reset(env, obs, info)
         from agents.navmap import SoundNamer
 

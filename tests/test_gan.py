@@ -108,3 +108,12 @@ def test_gan_rejects_a_pose_that_is_not_finite(env):
     obs = dict(obs, pose=np.array([np.nan, 0.0, 0.0, 1.0], np.float32))
     with pytest.raises(ConfigError, match="finite pose"):
         ag.act(obs, info)
+
+
+def test_gan_says_which_sensors_it_lacks(env):
+    from sonicverse_core.errors import ConfigError
+
+    obs, info = env.reset(seed=0)
+    ag = GanAgent(np.random.default_rng(0))
+    with pytest.raises(ConfigError, match="'audio', 'spectrogram' sensors"):
+        ag.reset(env.unwrapped, {k: v for k, v in obs.items() if k not in ("audio", "spectrogram")}, info)
