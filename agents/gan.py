@@ -157,6 +157,8 @@ class GanAgent(MapAgent):
         self.closest, self.no_closer = math.inf, 0
         self.backoff = 0
         self.trace: list[dict] = []  # what it heard and estimated (for analysis and tests)
+        self._turn = _wheels(0.0, math.radians(self.robot.max_turn_deg), self.robot)  # on the spot, to the left
+        self._evidence = None  # (what it was computed from, the levels' and bearings' log-likelihood per cell)
 
     # --- hearing ----------------------------------------------------------------------------------------------
     def _start_spin(self) -> None:
@@ -195,11 +197,15 @@ class GanAgent(MapAgent):
         if len(self.spin_e) >= 5:
             self._add_level(np.array(p, float), 10 * math.log10(np.mean(self.spin_e) + 1e-20), True)
 
+    def _coarse_occ(self) -> np.ndarray:
+        """The grid's cells holding a mapped obstacle."""
+        return (self.occ >= 2).reshape(self.n, self.f, self.n, self.f).any(axis=(1, 3))
+
     def _add_level(self, pos, db: float, spin: bool) -> None:
         """A level heard at ``pos``, with the path distance from there to every grid cell (the map as it is)."""
         from scipy.ndimage import binary_dilation
 
-        occ = (self.occ >= 2).reshape(self.n, self.f, self.n, self.f).any(axis=(1, 3))
+        occ = self._coarse_occ()
         blocked = binary_dilation(occ) if occ.any() else occ
         s = np.clip(np.floor(np.asarray(pos) / self.POST_CELL).astype(int) + self.n // 2, 0, self.n - 1)
         blocked[s[0], s[1]] = False
@@ -211,13 +217,21 @@ class GanAgent(MapAgent):
     # --- estimating -------------------------------------------------------------------------------------------
     def log_posterior(self) -> np.ndarray | None:
         """The log-probability (unnormalised) of each grid cell being where to stop for the goal; None before a
-        level and a category are known."""
-        from agents.semnav import LEVEL_FIT
-        from assets_manifest.soundbank import CATEGORIES
-
+        level and a category are known. The evidence is recomputed only when a level, a bearing or the category is
+        new; the mask of mapped obstacles and ruled-out cells every call."""
         k = self.ears.category()
         if k < 0 or not self.levels:
             return None
+        key = (k, len(self.levels), len(self.bearings))
+        if self._evidence is None or self._evidence[0] != key:
+            self._evidence = (key, self._log_evidence(k))
+        return np.where(self._coarse_occ() | self.ruled_out, -np.inf, self._evidence[1])
+
+    def _log_evidence(self, k: int) -> np.ndarray:
+        """The levels' and the bearings' log-likelihood per grid cell, for category ``k``."""
+        from agents.semnav import LEVEL_FIT
+        from assets_manifest.soundbank import CATEGORIES
+
         slope, off = LEVEL_FIT["slope"], LEVEL_FIT["offset"][CATEGORIES[k]]
         res, w = [], []
         for _, db, spin, lnd in self.levels:  # r_i = ln(d_i(cell) + NEAR) - predicted_i
@@ -230,8 +244,7 @@ class GanAgent(MapAgent):
         lp = shared_error_loglik(res, w, self.SIGMA_SHARED)
         for pos, b in self.bearings:
             lp = lp + self.KAPPA * np.cos(np.arctan2(self._gy - pos[1], self._gx - pos[0]) - b)
-        occ = (self.occ >= 2).reshape(self.n, self.f, self.n, self.f).any(axis=(1, 3))
-        return np.where(occ | self.ruled_out, -np.inf, lp)
+        return lp
 
     def estimate(self) -> np.ndarray | None:
         lp = self.log_posterior()
@@ -242,17 +255,8 @@ class GanAgent(MapAgent):
 
     # --- acting -----------------------------------------------------------------------------------------------
     def _plan(self, p, goal) -> None:
-        from scipy.ndimage import binary_dilation
-
-        s = np.clip(self._cell(p), 0, self.SIZE - 1)
+        s, _, dist, pred = self._reachable(p, 2)
         g = np.clip(self._cell(goal), 0, self.SIZE - 1)
-        for inflate in (2, 1, 0):  # in a narrow doorway the dilated map may shut the robot in
-            blocked = binary_dilation(self.occ >= 2, iterations=inflate) if inflate else self.occ >= 2
-            blocked[s[0], s[1]] = False
-            dist, pred = grid_field(blocked, s)
-            dist = dist.reshape(self.SIZE, self.SIZE)
-            if np.count_nonzero(np.isfinite(dist)) >= 50:
-                break
         if not np.isfinite(dist[g[0], g[1]]):  # the goal cell is blocked or cut off: the reachable cell nearest it
             reach = np.argwhere(np.isfinite(dist))
             g = reach[int(np.argmin(np.hypot(*(reach - g).T)))] if len(reach) else s
@@ -274,7 +278,7 @@ class GanAgent(MapAgent):
         self.steps += 1
         if self.stop_dim and self.steps >= self.max_steps:
             return self._out([0.0, 0.0], stop=True)
-        turn = _wheels(0.0, math.radians(self.robot.max_turn_deg), self.robot)
+        turn = self._turn
         if self.spin_left > 0:
             self.spin_left -= 1
             if self.spin_left == 0:
@@ -320,11 +324,11 @@ class GanAgent(MapAgent):
             if self.quiet >= self.QUIET or self.spins >= self.MAX_SPINS:
                 return self._out([0.0, 0.0], stop=True)
             self._start_spin()  # still sounding: listen here once more
-            return self._out(_wheels(0.0, math.radians(self.robot.max_turn_deg), self.robot))
+            return self._out(self._turn)
         # no stop action (AudioGoal ends on arrival): not here; listen again while it sounds
         i, j = np.clip(np.floor(p / self.POST_CELL).astype(int) + self.n // 2, 0, self.n - 1)
         self.ruled_out[max(0, i - 1):i + 2, max(0, j - 1):j + 2] = True
         self.goal, self.closest, self.no_closer = None, math.inf, 0
         if self.spins < self.MAX_SPINS and self.quiet < self.QUIET:
             self._start_spin()
-        return self._out(_wheels(0.0, math.radians(self.robot.max_turn_deg), self.robot))
+        return self._out(self._turn)

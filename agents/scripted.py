@@ -193,6 +193,22 @@ class MapAgent(Agent):
     def _cell(self, xy):
         return np.floor(np.asarray(xy) / self.CELL).astype(int) + self.SIZE // 2
 
+    def _reachable(self, p, inflate: int = 2):
+        """Where the robot at ``p`` can drive on the map: (its cell, the blocked grid, path lengths in cells from it,
+        predecessors; :func:`grid_field`), obstacles dilated by ``inflate`` cells, or fewer when that leaves under 50
+        cells reachable (in a narrow doorway the dilated map may shut the robot in)."""
+        from scipy.ndimage import binary_dilation
+
+        s = np.clip(self._cell(p), 0, self.SIZE - 1)
+        for k in range(inflate, -1, -1):
+            blocked = binary_dilation(self.occ >= 2, iterations=k) if k else self.occ >= 2
+            blocked[s[0], s[1]] = False
+            dist, pred = grid_field(blocked, s)
+            dist = dist.reshape(self.SIZE, self.SIZE)
+            if np.count_nonzero(np.isfinite(dist)) >= 50:
+                break
+        return s, blocked, dist, pred
+
     def _plan_to(self, p, goal) -> None:
         """``self.path``: waypoints from ``p`` to ``goal`` round what the map holds as blocked (dilated 2 cells;
         unknown space counts as free); the goal alone when there is no way."""

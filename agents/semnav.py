@@ -215,12 +215,6 @@ class SemNavAgent(MapAgent):
         v = np.asarray(xy, float) - self.spun_at
         return 1.0 - np.cos(np.arctan2(v[:, 1], v[:, 0]) - self.bearing)
 
-    def _blocked(self, inflate: int) -> np.ndarray:
-        from scipy.ndimage import binary_dilation
-
-        occ = self.occ >= 2
-        return binary_dilation(occ, iterations=inflate) if inflate else occ
-
     def _xy(self, cells) -> np.ndarray:
         return (np.asarray(cells, float) - self.SIZE // 2 + 0.5) * self.CELL
 
@@ -230,14 +224,7 @@ class SemNavAgent(MapAgent):
         cheapest by path plus its angle off the bearing, else to a random reachable cell."""
         from scipy.ndimage import binary_dilation
 
-        s = np.clip(self._cell(p), 0, self.SIZE - 1)
-        for inflate in range(self.INFLATE, -1, -1):  # in a narrow doorway the dilated map may shut the robot in
-            blocked = self._blocked(inflate)
-            blocked[s[0], s[1]] = False
-            dist, pred = grid_field(blocked, s)
-            dist = dist.reshape(self.SIZE, self.SIZE)
-            if np.count_nonzero(np.isfinite(dist)) >= 50:
-                break
+        s, blocked, dist, pred = self._reachable(p, self.INFLATE)
         goal, self.mode = self._sighting(blocked, dist), "approach"
         if goal is None:
             self.target, self.mode = None, "explore"
