@@ -552,6 +552,42 @@ def test_an_evaluations_episodes_depend_on_the_seed_and_index_alone(tmp_path):
     assert f == d and sorted(seen) == [0, 1, 2, 3] and two["episodes"] == 4
 
 
+def test_a_rerun_never_replaces_a_csv_whose_rows_it_would_lose(tmp_path):
+    """Without --resume, a run over an existing CSV replaces it only when it repeats the same evaluation over the
+    same episodes; an interrupted run's rows, another evaluation's, other episodes' or a stranger's file are
+    refused (the file untouched) unless --overwrite."""
+    from app.tasks.evaluate import run_eval
+    from sonicverse_core.errors import ConfigError
+
+    kw, a = {"max_steps": 20}, tmp_path / "a.csv"
+    run_eval("AudioGoal", "random", 2, seed=3, csv_path=a, env_kwargs=kw)
+    first = a.read_bytes()
+    run_eval("AudioGoal", "random", 2, seed=3, csv_path=a, env_kwargs=kw)  # the same run again: replaced, the same
+    assert a.read_bytes() == first
+    refused = [(3, "random", 3, kw, r"keeps 2 finished episodes of this evaluation, of the 3 asked for: add "
+                                   r"--resume to play the other 1"),
+               (1, "random", 3, kw, r"holds episode 1, outside the episodes asked for"),
+               (2, "random", 4, kw, r"another evaluation \(its seed differs\)"),
+               (2, "random", 3, {"max_steps": 21}, r"another evaluation \(its env differs\)"),
+               (2, "oracle", 3, kw, r"another evaluation \(its agent differs\)")]
+    for n, agent, seed, env, msg in refused:
+        with pytest.raises(ConfigError, match=msg):
+            run_eval("AudioGoal", agent, n, seed=seed, csv_path=a, env_kwargs=env)
+        assert a.read_bytes() == first
+    with pytest.raises(ConfigError, match="give one"):
+        run_eval("AudioGoal", "random", 3, seed=3, csv_path=a, env_kwargs=kw, resume=True, overwrite=True)
+    stranger = tmp_path / "notes.csv"
+    stranger.write_text("episode,remark\n0,keep me\n")
+    with pytest.raises(ConfigError, match="missing or unreadable.*--overwrite"):
+        run_eval("AudioGoal", "random", 1, seed=3, csv_path=stranger, env_kwargs=kw)
+    assert stranger.read_text() == "episode,remark\n0,keep me\n"
+    run_eval("AudioGoal", "random", 3, seed=3, csv_path=a, env_kwargs=kw, resume=True)  # plays the 3rd only
+    grown = a.read_bytes()
+    assert grown.startswith(first) and len(grown.splitlines()) == 4
+    run_eval("AudioGoal", "random", 2, seed=4, csv_path=a, env_kwargs=kw, overwrite=True)
+    assert len(a.read_bytes().splitlines()) == 3 and a.read_bytes() != first
+
+
 def test_a_stopped_evaluation_keeps_its_episodes_and_resumes(tmp_path):
     """The CSV is rewritten after every episode: SIGTERM in the middle of a run ends it with one line that says
     how many episodes the CSV keeps and how to go on; `--resume` (here with `--jobs 2`) plays the rest, and the CSV
@@ -574,6 +610,10 @@ def test_a_stopped_evaluation_keeps_its_episodes_and_resumes(tmp_path):
     last = err.strip().splitlines()[-1]  # (the lines before: an episode each, as a log shows them)
     assert proc.returncode == 2 and last.startswith("sonicverse: error: terminated (SIGTERM)"), err
     assert 1 <= kept < 6 and f"keeps its {kept} finished episode" in last and "--resume" in last
+    before = part.read_bytes()
+    r = run_cli(*base, "--csv", str(part))  # the same command again, without --resume: refused, nothing lost
+    assert r.returncode == 2 and f"keeps {kept} finished episode" in r.stderr and "--resume" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and part.read_bytes() == before
     r = run_cli(*base, "--csv", str(part), "--resume", "--jobs", "2", "--json", check_rc=0)
     assert part.read_bytes() == whole.read_bytes() and json.loads(r.stdout)["episodes"] == 6
     r = run_cli(*base[:-4], "--seed", "6", "--max-steps", "100", "--csv", str(part), "--resume")

@@ -25,7 +25,7 @@ def cmd_eval(a) -> int:
 
     res = run_eval(a.task, a.agent, a.episodes, split=a.split, sounds=a.sounds, seed=a.seed, csv_path=csv_path,
                    maps=a.maps, video=a.video, env_kwargs=kw, progress=progress, checkpoint=a.checkpoint,
-                   first=a.first, jobs=a.jobs, resume=a.resume)
+                   first=a.first, jobs=a.jobs, resume=a.resume, overwrite=a.overwrite)
     if a.json:
         print(json.dumps(res))
     else:
@@ -235,7 +235,8 @@ def cmd_task_run(a) -> int:
         from app.tasks.run import run_in_vr
         from sonicverse_core.errors import ConfigError
 
-        for flag, v in (("--first", a.first), ("--jobs", a.jobs > 1), ("--resume", a.resume)):
+        for flag, v in (("--first", a.first), ("--jobs", a.jobs > 1), ("--resume", a.resume),
+                        ("--overwrite", a.overwrite)):
             if v:
                 raise ConfigError(f"{flag} is for headless runs (the robot's episodes), not --backend {a.backend}")
         res = run_in_vr(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, backend=a.backend, out=a.out,
@@ -258,7 +259,8 @@ def cmd_task_run(a) -> int:
                    "render": not a.no_render, "hrtf": a.hrtf == "on", "reverb": a.reverb == "on"}
     res = run_task(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, out=a.out, maps=a.maps,
                    env_kwargs=kw, trials=a.trials, participant=participant, task_kwargs=task_kw,
-                   progress=not a.json, checkpoint=a.checkpoint, first=a.first, jobs=a.jobs, resume=a.resume)
+                   progress=not a.json, checkpoint=a.checkpoint, first=a.first, jobs=a.jobs, resume=a.resume,
+                   overwrite=a.overwrite)
     if a.json:
         print(json.dumps(res))
     else:
@@ -301,6 +303,9 @@ def add_task_commands(sub, bench_sub) -> None:
     tr.add_argument("--resume", action="store_true",
                     help="robot tasks: continue the run whose CSV is in --out (rewritten after every episode): play "
                     "only the episodes it lacks; refused if it holds another run")
+    tr.add_argument("--overwrite", action="store_true",
+                    help="robot tasks: replace a CSV in --out that this run would not repeat in full (an interrupted "
+                    "run's, another run's); without it such a run is refused, so no finished episode is lost")
     tr.add_argument("--trials", type=A.count(1, 1_000_000), default=None,
                     help="trials per block (orientation training; default: --episodes)")
     tr.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")
@@ -390,6 +395,9 @@ def add_task_commands(sub, bench_sub) -> None:
     e.add_argument("--resume", action="store_true",
                    help="continue the evaluation whose CSV --csv names (it is rewritten after every episode): play "
                    "only the episodes it lacks; refused if it holds another evaluation")
+    e.add_argument("--overwrite", action="store_true",
+                   help="replace a CSV that this run would not repeat in full (an interrupted run's, another "
+                   "evaluation's, other episodes'); without it such a run is refused, so no finished episode is lost")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=cmd_eval)
 

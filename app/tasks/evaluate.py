@@ -34,7 +34,7 @@ def make_env(task: str, **kwargs):
 def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: str = "heard", seed: int = 0,
              csv_path: str | Path | None = None, maps: str | Path | None = None, video: str | Path | None = None,
              env_kwargs: dict | None = None, progress=None, checkpoint=None, first: int = 0, jobs: int = 1,
-             resume: bool = False) -> dict:
+             resume: bool = False, overwrite: bool = False) -> dict:
     """Episodes ``first`` .. ``first + episodes - 1`` of the run with ``seed``. Episode i depends on the seed and i
     alone, so ``jobs`` > 1 plays them in that many processes (interleaved: job j plays every jobs-th, from the j-th)
     and gives the rows, the CSV and the metrics a single process gives (tested); the cores are shared out between
@@ -42,7 +42,9 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
 
     The CSV is rewritten (atomically) after every episode, beside a ``.json`` of what was evaluated: an interrupted
     or killed run keeps every finished episode, and ``resume`` plays only the episodes the CSV lacks (refused when
-    the CSV belongs to another evaluation: task, agent, checkpoint, seed, split, sounds, env settings)."""
+    the CSV belongs to another evaluation: task, agent, checkpoint, seed, split, sounds, env settings). Without
+    ``resume`` an existing CSV is replaced only by a rerun of the same evaluation over the same episodes; one that
+    would lose rows (an interrupted run's, another evaluation's, other episodes) is refused unless ``overwrite``."""
     from agents import make_agent
 
     if episodes < 1:
@@ -52,6 +54,8 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     check_jobs(jobs)
     if resume and not csv_path:
         raise ConfigError("--resume continues the evaluation whose CSV --csv names: give it")
+    if resume and overwrite:
+        raise ConfigError("--resume keeps the CSV's episodes and --overwrite drops them: give one")
     kw = dict(env_kwargs or {})
     probe = make_agent(agent, np.random.default_rng(seed), task, checkpoint=checkpoint)  # fails early, names its env
     meta = run_identity(task, agent, split, sounds, seed, kw, getattr(probe, "checkpoint", None) or checkpoint)
@@ -62,7 +66,7 @@ def run_eval(task: str, agent: str, episodes: int, split: str = "test", sounds: 
     path = Path(csv_path) if csv_path else None
     rows = run_episodes(indices, _play, (task, agent, split, sounds, seed, kw, maps, video, checkpoint), jobs=jobs,
                         path=path, meta=meta, resume=resume, fields=CSV_FIELDS, progress=progress,
-                        desc=f"{task} {agent}")
+                        desc=f"{task} {agent}", overwrite=overwrite)
     return _summary(rows, task, agent, split, sounds, seed, first, path)
 
 
@@ -87,15 +91,21 @@ def check_jobs(jobs: int) -> None:
 
 def run_episodes(indices: list[int], play, args: tuple, *, jobs: int = 1, path: Path | None = None,
                  meta: dict | None = None, resume: bool = False, fields: tuple | None = None, progress=None,
-                 desc: str = "") -> list[dict]:
+                 desc: str = "", overwrite: bool = False) -> list[dict]:
     """The rows of episodes ``indices``, played by ``play(indices, *args, report=, bar=)`` (a module-level function:
     ``jobs`` > 1 runs it in that many spawned processes, interleaved) and kept in the CSV ``path`` (rewritten
     atomically after every episode, ``meta`` beside it; ``fields`` its columns, None: the rows' keys). ``resume``
-    plays only the episodes the CSV lacks. ``progress(i, row)`` is called here as each episode ends. An interruption
-    raises :class:`errors.Interrupted`, saying what the CSV keeps."""
+    plays only the episodes the CSV lacks; without it, a CSV there that this run would not repeat in full is refused
+    (:func:`_keep_earlier`) unless ``overwrite``. ``progress(i, row)`` is called here as each episode ends. An
+    interruption raises :class:`errors.Interrupted`, saying what the CSV keeps."""
     from sonicverse_core import errors
 
-    rows = _resumed(path, meta, indices, fields) if resume else {}
+    if resume:
+        rows = _resumed(path, meta, indices, fields)
+    else:
+        rows = {}
+        if path and not overwrite:
+            _keep_earlier(path, meta, indices, fields)
     todo = [i for i in indices if i not in rows]
     written = []  # the identity goes beside the CSV with its first row
 
@@ -156,23 +166,55 @@ def _write_rows(path: Path, rows: dict, meta: dict | None, fields: tuple | None 
     write_text_atomic(path, buf.getvalue())
 
 
+def _keep_earlier(path: Path, meta: dict, indices: list[int], fields: tuple | None = CSV_FIELDS) -> None:
+    """Refuses to start a run that would replace the CSV at ``path`` and lose rows: those an interrupted run of the
+    same evaluation left (--resume plays the rest), another evaluation's, other episodes', or a file that is not an
+    evaluation's. A rerun of the same evaluation over the same episodes replaces it (it measures the same thing)."""
+    if not path.exists():
+        return
+    again = "give another file (--csv, --out) or --overwrite to replace it"
+    try:
+        rows = _earlier_rows(path, meta, indices, fields)
+    except _Foreign as exc:
+        raise ConfigError(f"{path} is kept from an earlier run ({exc}): {again}") from None
+    missing = len(set(indices) - set(rows))
+    if missing:
+        n = len(rows)
+        raise ConfigError(f"{path} keeps {n} finished episode{'s' if n != 1 else ''} of this evaluation, of the "
+                          f"{len(indices)} asked for: add --resume to play the other {missing}, or {again}")
+
+
 def _resumed(path: Path, meta: dict, indices: list[int], fields: tuple | None = CSV_FIELDS) -> dict:
     """The rows an interrupted evaluation left in ``path``, by episode (none where there is no CSV yet); ``fields``:
     its columns (None: any that start with the episode's index)."""
-    import json
-
     if not path.exists():
         return {}
+    try:
+        return _earlier_rows(path, meta, indices, fields)
+    except _Foreign as exc:
+        tail = "; use another --csv or drop --resume" if exc.args[0].startswith("it holds another") else ""
+        raise ConfigError(f"cannot resume {path}: {exc}{tail}") from None
+
+
+class _Foreign(Exception):
+    """Why a CSV is not (part of) the evaluation asked for."""
+
+
+def _earlier_rows(path: Path, meta: dict, indices: list[int], fields: tuple | None) -> dict:
+    """The rows of the existing CSV ``path`` by episode, when it holds episodes of this evaluation (``meta``) among
+    ``indices``; else :class:`_Foreign` says why not."""
+    import json
+
     mp = _meta_path(path)
     try:
         old = json.loads(mp.read_text())
     except (OSError, ValueError):
-        raise ConfigError(f"cannot resume {path}: {mp.name} (what it evaluated) is missing or unreadable") from None
+        raise _Foreign(f"{mp.name} (what it evaluated) is missing or unreadable") from None
     if old != json.loads(json.dumps(meta, default=str)):
         diff = sorted(k for k in set(old) | set(meta) if old.get(k) != json.loads(json.dumps(meta.get(k),
                                                                                               default=str)))
-        raise ConfigError(f"cannot resume {path}: it holds another evaluation (its {', '.join(diff)} "
-                          f"{'differs' if len(diff) == 1 else 'differ'}); use another --csv or drop --resume")
+        raise _Foreign(f"it holds another evaluation (its {', '.join(diff)} "
+                       f"{'differs' if len(diff) == 1 else 'differ'})")
     rows = {}
     try:
         with path.open(newline="") as f:
@@ -189,11 +231,11 @@ def _resumed(path: Path, meta: dict, indices: list[int], fields: tuple | None = 
                     raise ValueError(f"line {reader.line_num}: episode '{row['episode']}' is not a number")
                 rows[row["episode"]] = row
     except (OSError, ValueError, csv.Error) as exc:
-        raise ConfigError(f"cannot resume {path}: not an evaluation CSV ({exc})") from None
+        raise _Foreign(f"not an evaluation CSV ({exc})") from None
     outside = sorted(set(rows) - set(indices))
     if outside:
-        raise ConfigError(f"cannot resume {path}: it holds episode {outside[0]}, outside the episodes asked for "
-                          f"({indices[0]} .. {indices[-1]}: --first, --episodes)")
+        raise _Foreign(f"it holds episode {outside[0]}, outside the episodes asked for "
+                       f"({indices[0]} .. {indices[-1]}: --first, --episodes)")
     return rows
 
 

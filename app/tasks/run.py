@@ -37,17 +37,19 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str = "test", seed: int = 0,
              out: str | Path | None = None, maps: str | Path | None = None, env_kwargs: dict | None = None,
              trials: int | None = None, participant: dict | None = None, task_kwargs: dict | None = None,
-             progress: bool = False, checkpoint=None, first: int = 0, jobs: int = 1, resume: bool = False) -> dict:
+             progress: bool = False, checkpoint=None, first: int = 0, jobs: int = 1, resume: bool = False,
+             overwrite: bool = False) -> dict:
     """``checkpoint``: a learned agent's weights (default: the one shipped for the task). Robot tasks play episodes
     ``first`` .. ``first + episodes - 1`` of the run with ``seed`` (episode i depends on the seed and i alone), in
     ``jobs`` processes (the rows one process gives), into a CSV under ``out`` rewritten after every episode, which
-    ``resume`` completes (as ``sonicverse eval`` does: :func:`app.tasks.evaluate.run_episodes`)."""
+    ``resume`` completes and, without ``overwrite``, a run that would lose its rows does not replace (as ``sonicverse
+    eval`` does: :func:`app.tasks.evaluate.run_episodes`)."""
     spec = task_spec(task)
     agent = agent or spec.agents[0]
     if first < 0:
         raise ConfigError(f"--first must be >= 0, got {first}")
     if spec.kind == "trials":
-        for flag, v in (("--first", first), ("--jobs", jobs > 1), ("--resume", resume)):
+        for flag, v in (("--first", first), ("--jobs", jobs > 1), ("--resume", resume), ("--overwrite", overwrite)):
             if v:
                 raise ConfigError(f"{flag} is for robot tasks' episodes; {spec.cli} runs trials")
         if agent not in spec.agents:
@@ -57,11 +59,12 @@ def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str
         return _run_trials(spec, agent, trials or episodes, seed, out, participant or {}, task_kwargs or {},
                            progress)
     return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress, checkpoint, first,
-                         jobs, resume)
+                         jobs, resume, overwrite)
 
 
 def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: int, out, maps, kw: dict,
-                  progress: bool, checkpoint=None, first: int = 0, jobs: int = 1, resume: bool = False) -> dict:
+                  progress: bool, checkpoint=None, first: int = 0, jobs: int = 1, resume: bool = False,
+                  overwrite: bool = False) -> dict:
     from agents import make_agent
     from app.tasks.evaluate import check_jobs, csv_name, run_episodes, run_identity
     from sonicverse_core.tasks.metrics import mean_ci95, rate_ci95
@@ -71,13 +74,15 @@ def _run_embodied(spec: TaskSpec, agent: str, episodes: int, split: str, seed: i
     check_jobs(jobs)
     if resume and not out:
         raise ConfigError("--resume continues the run whose CSV is in --out: give it")
+    if resume and overwrite:
+        raise ConfigError("--resume keeps the CSV's episodes and --overwrite drops them: give one")
     probe = make_agent(agent, np.random.default_rng(seed), spec.name, checkpoint=checkpoint)  # fails early
     meta = run_identity(spec.name, agent, split, None, seed, kw, getattr(probe, "checkpoint", None) or checkpoint)
     kw = {**kw, **getattr(probe, "env_kwargs", lambda: {})()}  # the sensors a learned agent was trained on
     csv_path = Path(out) / csv_name(spec.cli, agent, split, seed, first) if out else None
     rows = run_episodes(list(range(first, first + episodes)), _play_embodied,
                         (spec.name, agent, split, seed, kw, maps, checkpoint), jobs=jobs, path=csv_path, meta=meta,
-                        resume=resume, fields=None, progress=(lambda i, row: None) if progress else None,
+                        resume=resume, overwrite=overwrite, fields=None, progress=(lambda i, row: None) if progress else None,
                         desc=f"{spec.cli} {agent}")
     res = {"task": spec.cli, "agent": agent, "episodes": len(rows), "first": first, "split": split, "seed": seed}
     for key in spec.metrics:
