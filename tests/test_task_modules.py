@@ -344,6 +344,21 @@ def test_walk_trials_and_scoring():
     assert s["walk_success"]["mean"] >= 0.9 and 0.7 <= s["path_efficiency"]["mean"] <= 1.0
 
 
+def test_a_vr_session_never_replaces_an_earlier_persons_csv(tmp_path):
+    """A person's VR sessions cannot be played again: `task run --backend desktop|openvr --out DIR` over a CSV an
+    earlier session left is refused before any window, audio or scene opens, the file untouched."""
+    from app.tasks.run import run_in_vr
+
+    for task, name in (("speaker-following", "speaker-following_scripted_desktop_s0.csv"),
+                       ("orientation-training", "orientation-training_simulated_openvr_s3.csv")):
+        old = tmp_path / name
+        old.write_text("episode,time_in_band\n0,0.91\n")
+        seed = 3 if "openvr" in name else 0
+        with pytest.raises(ConfigError, match="earlier session's rows.*--overwrite"):
+            run_in_vr(task, None, 1, seed=seed, backend=name.split("_")[-2], out=tmp_path)
+        assert old.read_text() == "episode,time_in_band\n0,0.91\n"
+
+
 def test_task_run_command(tmp_path, capsys):
     from app.cli import main
 

@@ -235,13 +235,12 @@ def cmd_task_run(a) -> int:
         from app.tasks.run import run_in_vr
         from sonicverse_core.errors import ConfigError
 
-        for flag, v in (("--first", a.first), ("--jobs", a.jobs > 1), ("--resume", a.resume),
-                        ("--overwrite", a.overwrite)):
+        for flag, v in (("--first", a.first), ("--jobs", a.jobs > 1), ("--resume", a.resume)):
             if v:
                 raise ConfigError(f"{flag} is for headless runs (the robot's episodes), not --backend {a.backend}")
         res = run_in_vr(spec.name, a.agent, a.episodes, split=a.split, seed=a.seed, backend=a.backend, out=a.out,
                         trials=a.trials or 10, mode=a.mode if a.mode != "mixed" else "turn",
-                        hrtf=a.hrtf == "on", reverb=a.reverb == "on", scene=a.scene)
+                        hrtf=a.hrtf == "on", reverb=a.reverb == "on", scene=a.scene, overwrite=a.overwrite)
         print(json.dumps(res) if a.json else "\n".join(f"{k:>26}: {v['mean']}" for k, v in res.items()
                                                        if isinstance(v, dict) and "mean" in v))
         return 0
@@ -304,8 +303,9 @@ def add_task_commands(sub, bench_sub) -> None:
                     help="robot tasks: continue the run whose CSV is in --out (rewritten after every episode): play "
                     "only the episodes it lacks; refused if it holds another run")
     tr.add_argument("--overwrite", action="store_true",
-                    help="robot tasks: replace a CSV in --out that this run would not repeat in full (an interrupted "
-                    "run's, another run's); without it such a run is refused, so no finished episode is lost")
+                    help="robot tasks headless: replace a CSV in --out that this run would not repeat in full (an "
+                    "interrupted run's, another run's); desktop / openvr: replace an earlier session's CSV; without "
+                    "it such a run is refused, so nothing finished is lost")
     tr.add_argument("--trials", type=A.count(1, 1_000_000), default=None,
                     help="trials per block (orientation training; default: --episodes)")
     tr.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")

@@ -177,11 +177,13 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
 def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str = "test", seed: int = 0,
               backend: str = "desktop", out: str | Path | None = None, trials: int = 10, mode: str = "turn",
               rate: float | None = None, size=None, max_seconds: float | None = None, hrtf: bool = True,
-              reverb: bool = True, scene: str | None = None) -> dict:
+              reverb: bool = True, scene: str | None = None, overwrite: bool = False) -> dict:
     """``task run --backend desktop|openvr``: the task in the VR app with the user as the person, one session per
     episode (orientation training: one session of ``trials`` trials), each in a home of ``split`` and ending when
     the task does (or the user closes the window / quits, or after ``max_seconds``: the task's own limit). Returns
-    the task's metric keys with 95% CIs over the episodes (trials), as :func:`run_task` does, and writes a CSV."""
+    the task's metric keys with 95% CIs over the episodes (trials), as :func:`run_task` does, and writes a CSV
+    (rewritten after each session). A person's sessions cannot be played again: a CSV already there is refused
+    before anything starts, unless ``overwrite``."""
     from app.tasks.in_the_loop import OrientationTrials, make_frame_task
     from app.vr import open_backend
     from app.vr.session import SessionConfig, VRSession
@@ -194,6 +196,9 @@ def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str
     scenes = [scene] if scene else homes(split)
     rows: list[dict] = []
     csv_path = Path(out) / f"{spec.cli}_{agent or spec.agents[0]}_{backend}_s{seed}.csv" if out else None
+    if csv_path is not None and csv_path.exists() and not overwrite:
+        raise ConfigError(f"{csv_path} holds an earlier session's rows (a person's sessions cannot be played "
+                          "again): give another --out, or --overwrite to replace it")
     n = 1 if spec.kind == "trials" else episodes
     for i in range(n):
         s_i = episode_seed(seed, i)
