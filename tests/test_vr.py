@@ -443,6 +443,17 @@ def test_vr_command_errors_exit_2(cli, tmp_path):
     assert "no such file" in r.stderr
     r = cli("vr", "--backend", "headless", "--scene", "nosuch:scene", "--frames", "2", check_rc=2)
     assert "Traceback" not in r.stderr
+    # a person's session (desktop, openvr) over an earlier one's files: refused before anything opens, untouched
+    (tmp_path / "s1").mkdir()
+    (tmp_path / "s1" / "stats.json").write_text('{"frames": 900}')
+    (tmp_path / "take1.svrec").write_bytes(b"earlier")
+    for extra in (["--out", str(tmp_path / "s1")], ["--record", str(tmp_path / "take1.svrec")]):
+        for backend in ("desktop", "openvr"):
+            r = cli("vr", "--backend", backend, *extra, check_rc=2)
+            assert "holds an earlier session" in r.stderr and "--overwrite" in r.stderr
+            assert len(r.stderr.strip().splitlines()) == 1
+    assert (tmp_path / "s1" / "stats.json").read_text() == '{"frames": 900}'
+    assert (tmp_path / "take1.svrec").read_bytes() == b"earlier"
     r = cli("vr", "--backend", "headless", "--size", "10x10", check_rc=2)
     assert "eye size" in r.stderr
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")}

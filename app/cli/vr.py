@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from pathlib import Path
 
 from app.cli import args as A
 from sonicverse_core.errors import ConfigError
@@ -73,6 +74,12 @@ def cmd_vr(a) -> int:
                         robots=robots, msaa=a.msaa, cull_rooms=a.cull_rooms, seed=seed, hrtf=a.hrtf == "on",
                         reverb=a.reverb == "on",
                         write_frames=a.write_frames if a.write_frames is not None else (10 if headless else 0))
+    if not a.overwrite and (not headless or cfg.audio == "live"):  # a person's session: it cannot be played again
+        earlier = [Path(out) / n for n in ("stats.json", "input.svrec")] if out else []
+        taken = [p for p in earlier + ([Path(a.record)] if a.record else []) if p.exists()]
+        if taken:
+            raise ConfigError(f"{taken[0]} holds an earlier session (a person's session cannot be played again): "
+                              "give another --out / --record, or --overwrite to replace it")
     from app.vr import open_backend
 
     backend = open_backend(backend_name, a.size, a.rate, a.realtime, recording)
@@ -166,6 +173,9 @@ def add_vr_commands(sub, bench_sub) -> None:
                    help="off: an interaural time and level panner instead of the HRTF (default: on)")
     v.add_argument("--reverb", default="on", choices=("on", "off"),
                    help="off: no early reflections and no late reverb (default: on)")
+    v.add_argument("--overwrite", action="store_true",
+                   help="replace the files of an earlier session in --out (or --record's file); without it a session "
+                   "with a person (desktop, openvr, live audio) is refused where one would be replaced")
     v.add_argument("--json", action="store_true", help="print one JSON object with the frame statistics")
     v.set_defaults(func=cmd_vr)
 
