@@ -22,6 +22,7 @@ def bad(tmp_path_factory):
     np.savez(d / "other.npz", x=np.arange(3))
     (d / "trunc.svrec").write_bytes(b"SVREC1\n{\"scene\": ")
     (d / "empty.svrec").write_bytes(b"")
+    (d / "take1.wav").write_bytes(b"an earlier person's take")
     return d
 
 
@@ -90,6 +91,7 @@ def table(d):
         ["vr", "--out", str(d / "notes.txt")], ["vr", "--record", str(d / "r.txt")],
         ["eval", "--task", "AudioGoal", "--agent", "oracle", "--csv", str(d / "folder.wav")],
         ["audio", "live", "--record", str(d / "rec.flac")],
+        ["audio", "live", "--record", str(d / "take1.wav")],  # an earlier take: refused before any device opens
         # inputs: missing, not a file, corrupt
         ["vr", "--backend", "headless", "--replay", str(d / "missing.npz")],
         ["vr", "--backend", "headless", "--replay", str(d / "notes.txt")],
@@ -132,6 +134,8 @@ def test_nothing_is_written_when_the_output_is_refused(bad, capsys):
     assert main(["render", "shoebox:6x4x3", "--sound", "sofa", "--source", "1,1,1", "--listener", "3,2,1.5",
                  "--out", str(bad / "out.mp3")]) == 2
     assert not (bad / "out.mp3").exists()
+    assert main(["audio", "live", "--record", str(bad / "take1.wav")]) == 2
+    assert (bad / "take1.wav").read_bytes() == b"an earlier person's take"
 
 
 def test_a_refused_output_names_the_file_asked_for(capsys):

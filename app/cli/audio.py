@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 
 import numpy as np
 
 from app.cli import args as A
-from sonicverse_core.errors import SonicverseError
+from sonicverse_core.errors import ConfigError, SonicverseError
 
 
 def _device(text):
@@ -82,6 +83,9 @@ def cmd_live(a) -> int:
     from app.audio_rt.engine import AudioEngine
     from app.audio_rt.loopback import random_sources
 
+    if a.record and os.path.exists(a.record) and not a.overwrite:  # a person's take: it cannot be recorded again
+        raise ConfigError(f"{a.record} holds an earlier recording: give another --record, or --overwrite to "
+                          "replace it")
     spec = None if a.scene == "none" else a.scene
     srcs, head = random_sources(spec, a.sources, a.seed, gain=0.1)
     cfg = AudioConfig(device=_device(a.device), input_device=_device(a.input_device), sample_rate=a.sample_rate,
@@ -117,14 +121,17 @@ def cmd_live(a) -> int:
                 except SonicverseError as exc:  # the device is still gone: stop, keeping what was recorded
                     print(f"sonicverse: {exc}", file=sys.stderr)
                     break
-    finally:
+    finally:  # Ctrl-C, SIGTERM or an error too: what was recorded is written
         keys.close()
         tele = eng.telemetry()
         eng.stop()
-    if a.record and recorded:
-        import soundfile as sf
+        if a.record and recorded:
+            import soundfile as sf
 
-        sf.write(a.record, np.concatenate(recorded, axis=1).T, a.sample_rate, subtype="FLOAT")
+            from sonicverse_core.storage import atomic_write
+
+            with atomic_write(a.record) as fh:
+                sf.write(fh, np.concatenate(recorded, axis=1).T, a.sample_rate, subtype="FLOAT", format="WAV")
     res = {"device": info["output_device"], "seconds": round(time.monotonic() - t0, 2), **tele}
     print(json.dumps(res) if a.json else f"{tele['callbacks']} callbacks, {tele['xruns']} xruns, "
           f"callback p99 {tele['callback_ms']['p99']} ms")
@@ -174,7 +181,9 @@ def add_commands(sub) -> None:
     lv.add_argument("--input-device", help="microphone device (default: --device)")
     lv.add_argument("--sidetone", type=A.number(0, 4), default=0.0, help="hear your own voice in the scene (gain)")
     lv.add_argument("--no-mic", action="store_true", help="output only")
-    lv.add_argument("--record", type=A.out_file(".wav"), help="write what reached the headphones to this WAV file")
+    lv.add_argument("--record", type=A.out_file(".wav"), help="write what reached the headphones to this WAV file "
+                    "(also when the session ends by Ctrl-C or an error)")
+    lv.add_argument("--overwrite", action="store_true", help="replace --record's file if it exists (else refused)")
     lv.add_argument("--reopen", action="store_true", help="reopen the stream when the device comes back")
     lv.add_argument("--seed", type=A.seed, default=0, help="seed of the sources' placement (default: 0)")
     stream_args(lv)
