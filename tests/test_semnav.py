@@ -77,6 +77,42 @@ def test_sem_nav_finds_the_sounding_category_and_stops_beside_it(i):
         env.close()
 
 
+def test_on_audio_goal_sem_nav_weighs_its_sightings_by_every_level_it_hears(monkeypatch):
+    """AudioGoal's sound never stops: sem-nav feeds the gan's grid (agents.gan) its turn's bearing and level and a
+    level every WINDOW audible steps while driving, and weighs frontiers and sightings by it. Validation episode 31
+    of `sonicverse eval --task AudioGoal --split val --seed 0` (a picture 9.8 m away): with the grid it arrives; with
+    the first turn's bearing and level alone (as before session 53, and as on SemanticAudioNav) it runs out of its
+    500 steps."""
+    from agents import make_agent
+    from agents.semnav import SemNavAgent
+    from app.tasks.evaluate import episode_seed
+    from sonicverse_core.tasks import make_env
+
+    s = episode_seed(0, 31)
+
+    def play():
+        ag = make_agent("sem-nav", np.random.default_rng(s), "AudioGoal")
+        env = make_env("AudioGoal", split="val", **ag.env_kwargs())
+        try:
+            obs, info = env.reset(seed=s)
+            ag.reset(env, obs, info)
+            done = False
+            while not done:
+                obs, _, term, trunc, info = env.step(ag.act(obs, info))
+                done = term or trunc
+            return ag, info
+        finally:
+            env.close()
+
+    ag, info = play()
+    spins = [lv for lv in ag.post.levels if lv[2]]
+    assert len(spins) == 1 and len(ag.post.bearings) == 1 and len(ag.post.levels) >= 3
+    assert info["metrics"]["success"] == 1.0 and info["steps"] < 300, info["metrics"]
+    monkeypatch.setattr(SemNavAgent, "POSTERIOR", False)
+    ag, info = play()
+    assert ag.post is None and info["metrics"]["success"] == 0.0 and info["steps"] == 500
+
+
 def test_the_route_map_draws_the_way_sem_nav_would_go():
     """RouteNavMap (`train --map route`): channel 5 is empty while sem-nav turns on the spot to hear the sound, then
     shows its route from the robot. Drawn back onto the world through the robot's pose, every lit pixel lies within
