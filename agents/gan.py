@@ -184,7 +184,7 @@ class GanAgent(MapAgent):
         self.window.append((p.copy(), e))
         if len(self.window) >= self.WINDOW:
             pos = np.mean([w[0] for w in self.window], axis=0)
-            self._add_level(pos, 10 * math.log10(np.mean([w[1] for w in self.window]) + 1e-20), False)
+            self.add_level(pos, 10 * math.log10(np.mean([w[1] for w in self.window]) + 1e-20), False)
             self.window = []
 
     def _end_spin(self, p) -> None:
@@ -195,13 +195,13 @@ class GanAgent(MapAgent):
         if b is not None:
             self.bearings.append((np.array(p, float), b))
         if len(self.spin_e) >= 5:
-            self._add_level(np.array(p, float), 10 * math.log10(np.mean(self.spin_e) + 1e-20), True)
+            self.add_level(np.array(p, float), 10 * math.log10(np.mean(self.spin_e) + 1e-20), True)
 
     def _coarse_occ(self) -> np.ndarray:
         """The grid's cells holding a mapped obstacle."""
         return (self.occ >= 2).reshape(self.n, self.f, self.n, self.f).any(axis=(1, 3))
 
-    def _add_level(self, pos, db: float, spin: bool) -> None:
+    def add_level(self, pos, db: float, spin: bool) -> None:
         """A level heard at ``pos``, with the path distance from there to every grid cell (the map as it is)."""
         from scipy.ndimage import binary_dilation
 

@@ -176,6 +176,7 @@ class SemNavAgent(MapAgent):
         self.bearing, self.spun_at = None, None  # the sound's direction from the spin (world yaw, radians)
         self.spin_e, self.level_db = [], None  # the level heard over the spin
         self.post, self.window = None, []  # AudioGoal: the gan's grid, fed the spin and levels heard while driving
+        self._post_key, self._post_near = None, None  # _post_cost: what its filtered grid came from, the grid
         if self.POSTERIOR and not self.stop_dim and "audio" in obs:
             from agents.gan import GanAgent
 
@@ -210,7 +211,7 @@ class SemNavAgent(MapAgent):
             self.window.append((np.array(p, float), float(np.mean(np.square(np.asarray(obs["audio"], float))))))
             if len(self.window) >= self.post.WINDOW:
                 pos = np.mean([w[0] for w in self.window], axis=0)
-                self.post._add_level(pos, 10 * math.log10(np.mean([w[1] for w in self.window]) + 1e-20), False)
+                self.post.add_level(pos, 10 * math.log10(np.mean([w[1] for w in self.window]) + 1e-20), False)
                 self.window = []
 
     def expected_distance(self) -> float | None:
@@ -252,8 +253,9 @@ class SemNavAgent(MapAgent):
         lp = self.post.log_posterior()
         if lp is None or not np.isfinite(lp).any():
             return None
-        key = self.post._evidence[0], int(self.post.ruled_out.sum()), int((self.occ >= 2).sum())
-        if getattr(self, "_post_key", None) != key:
+        key = (self.ears.category(), len(self.post.levels), len(self.post.bearings), int(self.post.ruled_out.sum()),
+               int((self.occ >= 2).sum()))
+        if self._post_key != key:
             from scipy.ndimage import maximum_filter
 
             r = int(round(self.POST_REACH / self.post.POST_CELL))
@@ -368,7 +370,7 @@ class SemNavAgent(MapAgent):
                     if self.bearing is not None:
                         self.post.bearings.append((self.spun_at.copy(), self.bearing))
                     if len(self.spin_e) >= 5:
-                        self.post._add_level(self.spun_at.copy(), self.level_db, True)
+                        self.post.add_level(self.spun_at.copy(), self.level_db, True)
                 self.since_plan = self.REPLAN
             return self._out(turn)
         bumped = obs.get("bump") is not None and obs["bump"][0] > 0

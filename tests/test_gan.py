@@ -60,7 +60,7 @@ def test_levels_heard_at_four_places_round_it_trilaterate_the_goal_despite_a_sha
         q = np.array(q)
         d = float(np.linalg.norm(q - g))
         db = (math.log(d + ag.NEAR) - 0.3 - off - DRIVE_FIT["shift"]) / DRIVE_FIT["slope"]  # all sound nearer
-        ag._add_level(q, db, False)
+        ag.add_level(q, db, False)
     est = ag.estimate()
     assert np.linalg.norm(est - g) <= 0.3, est  # the grid's cell (0.2 m) and the path metric's octile steps
     lp = ag.log_posterior()
