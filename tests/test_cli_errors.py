@@ -42,7 +42,7 @@ def table(d):
         ["task", "run", "speaker-following", "--out", str(d / "notes.txt")],
         ["task", "run", "orientation-training", "--front-back", "2"],
         ["task", "run", "speaker-following", "--resume", "--overwrite", "--out", str(d / "sf")],
-        ["task", "run", "orientation-training", "--overwrite"],
+        ["task", "run", "orientation-training", "--first", "3"],
         ["eval", "--task", "AudioGoal", "--agent", "random", "--resume", "--overwrite", "--csv", str(d / "e.csv")],
         # a checkpoint of another task: it would run with the same sensors and score as if meant for this one
         ["task", "run", "speaker-following", "--agent", "av-nav", "--checkpoint", AV_NAV],

@@ -359,6 +359,30 @@ def test_a_vr_session_never_replaces_an_earlier_persons_csv(tmp_path):
         assert old.read_text() == "episode,time_in_band\n0,0.91\n"
 
 
+def test_a_simulated_training_run_never_replaces_one_with_other_settings(tmp_path, capsys):
+    """`task run orientation-training --out DIR`: the same settings again replace the CSV (the run is
+    deterministic); other settings, or a CSV without its settings file, are refused in one line with the file
+    untouched, unless --overwrite."""
+    from app.cli import main
+
+    base = ["task", "run", "orientation-training", "--trials", "6", "--mode", "turn", "--out", str(tmp_path)]
+    csv_path = tmp_path / "orientation-training_simulated_s0.csv"
+    assert main(base) == 0
+    first = csv_path.read_text()
+    assert len(first.splitlines()) == 7 and json.loads((tmp_path / (csv_path.name + ".json")).read_text())["seed"] == 0
+    assert main(base) == 0 and csv_path.read_text() == first  # the same run again: the same rows
+    capsys.readouterr()
+    assert main(base[:4] + ["8"] + base[5:]) == 2  # 8 trials where 6 were run
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "other settings: trials 6 (now 8)" in err and "--overwrite" in err
+    assert main(base + ["--noise", "30"]) == 2 and "noise_deg 10.0 (now 30.0)" in capsys.readouterr().err
+    assert csv_path.read_text() == first
+    (tmp_path / (csv_path.name + ".json")).unlink()
+    assert main(base) == 2 and "missing" in capsys.readouterr().err and csv_path.read_text() == first
+    assert main(base[:4] + ["8"] + base[5:] + ["--overwrite"]) == 0
+    assert len(csv_path.read_text().splitlines()) == 9
+
+
 def test_task_run_command(tmp_path, capsys):
     from app.cli import main
 

@@ -304,8 +304,9 @@ def add_task_commands(sub, bench_sub) -> None:
                     "only the episodes it lacks; refused if it holds another run")
     tr.add_argument("--overwrite", action="store_true",
                     help="robot tasks headless: replace a CSV in --out that this run would not repeat in full (an "
-                    "interrupted run's, another run's); desktop / openvr: replace an earlier session's CSV; without "
-                    "it such a run is refused, so nothing finished is lost")
+                    "interrupted run's, another run's); simulated trials: one run with other settings; desktop / "
+                    "openvr: replace an earlier session's CSV; without it such a run is refused, so nothing finished "
+                    "is lost")
     tr.add_argument("--trials", type=A.count(1, 1_000_000), default=None,
                     help="trials per block (orientation training; default: --episodes)")
     tr.add_argument("--split", default="test", choices=("train", "val", "test"), help="homes (default: %(default)s)")

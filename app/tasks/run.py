@@ -49,7 +49,7 @@ def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str
     if first < 0:
         raise ConfigError(f"--first must be >= 0, got {first}")
     if spec.kind == "trials":
-        for flag, v in (("--first", first), ("--jobs", jobs > 1), ("--resume", resume), ("--overwrite", overwrite)):
+        for flag, v in (("--first", first), ("--jobs", jobs > 1), ("--resume", resume)):
             if v:
                 raise ConfigError(f"{flag} is for robot tasks' episodes; {spec.cli} runs trials")
         if agent not in spec.agents:
@@ -57,7 +57,7 @@ def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str
         if checkpoint is not None:
             raise ConfigError(f"{spec.cli} has no learned agents: no --checkpoint")
         return _run_trials(spec, agent, trials or episodes, seed, out, participant or {}, task_kwargs or {},
-                           progress)
+                           progress, overwrite)
     return _run_embodied(spec, agent, episodes, split, seed, out, maps, env_kwargs or {}, progress, checkpoint, first,
                          jobs, resume, overwrite)
 
@@ -147,7 +147,14 @@ def _write_map(env, robot, person, out: Path, spec: TaskSpec, m: dict) -> None:
 
 
 def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, participant: dict, task_kwargs: dict,
-                progress: bool) -> dict:
+                progress: bool, overwrite: bool = False) -> dict:
+    """A simulated listener's session; its CSV under ``out`` (with ``.csv.json``: the settings it ran with) replaces
+    an earlier one only when the earlier ran with the same settings (the same trials again: the run is
+    deterministic), or with ``overwrite``."""
+    import json
+
+    from app.tasks.evaluate import _meta_path
+    from sonicverse_core.storage import write_text_atomic
     from sonicverse_core.tasks.orientation import SimulatedListener, learning_curve
 
     cls = spec.load()
@@ -156,6 +163,28 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
     runner = cls(**kw)
     listener = SimulatedListener(**participant)
     p = Path(out) / f"{spec.cli}_{agent}_s{seed}.csv" if out else None
+    if p is not None:
+        meta = json.loads(json.dumps({"task": spec.cli, "agent": agent, "seed": seed, "task_kwargs": kw,
+                                      "participant": participant}, default=str))
+        if p.exists() and not overwrite:
+            try:
+                old = json.loads(_meta_path(p).read_text())
+            except (OSError, ValueError):
+                old = None
+            old = old if isinstance(old, dict) else None
+            if old != meta:
+                def flat(m):
+                    return {f"{k}.{j}" if isinstance(v, dict) else k: w for k, v in m.items()
+                            for j, w in (v.items() if isinstance(v, dict) else [(None, v)])}
+
+                was, now = (flat(old), flat(meta)) if old is not None else ({}, {})
+                why = (f"{_meta_path(p).name} (what it ran) is missing or unreadable" if old is None else
+                       "it ran with other settings: " + ", ".join(
+                           f"{k.split('.')[-1]} {was.get(k)} (now {now.get(k)})" for k in sorted(set(was) | set(now))
+                           if was.get(k) != now.get(k)))
+                raise ConfigError(f"{p} is kept from an earlier run ({why}): give another --out, or --overwrite to "
+                                  "replace it")
+        write_text_atomic(_meta_path(p), json.dumps(meta, indent=1) + "\n")
     done: list[dict] = []
 
     def keep(i, row):  # on disk every 10 trials (atomically): an interrupted session loses at most 9
