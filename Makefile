@@ -20,7 +20,7 @@ demo: setup
 	.venv/bin/sonicverse vr --out out/demo
 
 # two worker processes, a test file each (pytest-xdist): much of the suite waits on JACK's real-time clock and on
-# spawned jobs, so two files at a time take about 0.6 of the time on two cores (README, Tests)
+# spawned jobs, so two files at a time take about half the time on two cores (README, Tests)
 test: setup
 	QT_QPA_PLATFORM=offscreen $(PY) -m pytest -q -n 2 --dist loadfile -m "not slow and not gpu"
 

@@ -146,6 +146,18 @@ def _write_map(env, robot, person, out: Path, spec: TaskSpec, m: dict) -> None:
              path_labels=["robot", "person"][:len(paths)])
 
 
+def _settings_diff(old: dict, new: dict) -> str:
+    """``'trials 6 (now 8), noise_deg 10.0 (now 30.0)'``: the settings (one level of nested dicts flattened) that
+    differ between two runs' ``.csv.json``."""
+    def flat(m: dict) -> dict:
+        return {f"{k}.{j}" if isinstance(v, dict) else k: w for k, v in m.items()
+                for j, w in (v.items() if isinstance(v, dict) else [(None, v)])}
+
+    was, now = flat(old), flat(new)
+    return ", ".join(f"{k.split('.')[-1]} {was.get(k)} (now {now.get(k)})" for k in sorted(set(was) | set(now))
+                     if was.get(k) != now.get(k))
+
+
 def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, participant: dict, task_kwargs: dict,
                 progress: bool, overwrite: bool = False) -> dict:
     """A simulated listener's session; its CSV under ``out`` (with ``.csv.json``: the settings it ran with) replaces
@@ -173,15 +185,8 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
                 old = None
             old = old if isinstance(old, dict) else None
             if old != meta:
-                def flat(m):
-                    return {f"{k}.{j}" if isinstance(v, dict) else k: w for k, v in m.items()
-                            for j, w in (v.items() if isinstance(v, dict) else [(None, v)])}
-
-                was, now = (flat(old), flat(meta)) if old is not None else ({}, {})
                 why = (f"{_meta_path(p).name} (what it ran) is missing or unreadable" if old is None else
-                       "it ran with other settings: " + ", ".join(
-                           f"{k.split('.')[-1]} {was.get(k)} (now {now.get(k)})" for k in sorted(set(was) | set(now))
-                           if was.get(k) != now.get(k)))
+                       f"it ran with other settings: {_settings_diff(old, meta)}")
                 raise ConfigError(f"{p} is kept from an earlier run ({why}): give another --out, or --overwrite to "
                                   "replace it")
         write_text_atomic(_meta_path(p), json.dumps(meta, indent=1) + "\n")
