@@ -581,6 +581,11 @@ def test_a_rerun_never_replaces_a_csv_whose_rows_it_would_lose(tmp_path):
     with pytest.raises(ConfigError, match="missing or unreadable.*--overwrite"):
         run_eval("AudioGoal", "random", 1, seed=3, csv_path=stranger, env_kwargs=kw)
     assert stranger.read_text() == "episode,remark\n0,keep me\n"
+    (tmp_path / "notes.csv.json").write_text("[1]\n")  # JSON, but not an evaluation's identity
+    for resume in (False, True):
+        with pytest.raises(ConfigError, match="missing or unreadable"):
+            run_eval("AudioGoal", "random", 1, seed=3, csv_path=stranger, env_kwargs=kw, resume=resume)
+    assert stranger.read_text() == "episode,remark\n0,keep me\n"
     run_eval("AudioGoal", "random", 3, seed=3, csv_path=a, env_kwargs=kw, resume=True)  # plays the 3rd only
     grown = a.read_bytes()
     assert grown.startswith(first) and len(grown.splitlines()) == 4

@@ -377,6 +377,8 @@ def test_a_simulated_training_run_never_replaces_one_with_other_settings(tmp_pat
     assert len(err.splitlines()) == 1 and "other settings: trials 6 (now 8)" in err and "--overwrite" in err
     assert main(base + ["--noise", "30"]) == 2 and "noise_deg 10.0 (now 30.0)" in capsys.readouterr().err
     assert csv_path.read_text() == first
+    (tmp_path / (csv_path.name + ".json")).write_text("[1]\n")  # JSON, but not a run's settings
+    assert main(base) == 2 and "unreadable" in capsys.readouterr().err and csv_path.read_text() == first
     (tmp_path / (csv_path.name + ".json")).unlink()
     assert main(base) == 2 and "missing" in capsys.readouterr().err and csv_path.read_text() == first
     assert main(base[:4] + ["8"] + base[5:] + ["--overwrite"]) == 0

@@ -142,8 +142,21 @@ def run_identity(task, agent, split, sounds, seed, kw, checkpoint) -> dict:
             "env": {k: kw[k] for k in sorted(kw)}, "checkpoint": ck}
 
 
-def _meta_path(path: Path) -> Path:
+def identity_path(path: Path) -> Path:
+    """Where a run's CSV keeps what wrote it (``NAME.csv.json``)."""
     return path.with_name(path.name + ".json")
+
+
+def read_identity(path: Path) -> dict | None:
+    """The identity the run that wrote the CSV ``path`` left beside it; None where that file is missing, unreadable
+    or not a JSON object."""
+    import json
+
+    try:
+        old = json.loads(identity_path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return old if isinstance(old, dict) else None
 
 
 def _write_rows(path: Path, rows: dict, meta: dict | None, fields: tuple | None = CSV_FIELDS) -> None:
@@ -156,7 +169,7 @@ def _write_rows(path: Path, rows: dict, meta: dict | None, fields: tuple | None 
 
     path.parent.mkdir(parents=True, exist_ok=True)
     if meta is not None:
-        write_text_atomic(_meta_path(path), json.dumps(meta, indent=1, default=str) + "\n")
+        write_text_atomic(identity_path(path), json.dumps(meta, indent=1, default=str) + "\n")
     if fields is None:
         fields = list(dict.fromkeys(k for i in sorted(rows) for k in rows[i]))
     buf = io.StringIO()
@@ -205,11 +218,9 @@ def _earlier_rows(path: Path, meta: dict, indices: list[int], fields: tuple | No
     ``indices``; else :class:`_Foreign` says why not."""
     import json
 
-    mp = _meta_path(path)
-    try:
-        old = json.loads(mp.read_text())
-    except (OSError, ValueError):
-        raise _Foreign(f"{mp.name} (what it evaluated) is missing or unreadable") from None
+    old = read_identity(path)
+    if old is None:
+        raise _Foreign(f"{identity_path(path).name} (what it evaluated) is missing or unreadable")
     if old != json.loads(json.dumps(meta, default=str)):
         diff = sorted(k for k in set(old) | set(meta) if old.get(k) != json.loads(json.dumps(meta.get(k),
                                                                                               default=str)))

@@ -165,7 +165,7 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
     deterministic), or with ``overwrite``."""
     import json
 
-    from app.tasks.evaluate import _meta_path
+    from app.tasks.evaluate import identity_path, read_identity
     from sonicverse_core.storage import write_text_atomic
     from sonicverse_core.tasks.orientation import SimulatedListener, learning_curve
 
@@ -179,17 +179,13 @@ def _run_trials(spec: TaskSpec, agent: str, trials: int, seed: int, out, partici
         meta = json.loads(json.dumps({"task": spec.cli, "agent": agent, "seed": seed, "task_kwargs": kw,
                                       "participant": participant}, default=str))
         if p.exists() and not overwrite:
-            try:
-                old = json.loads(_meta_path(p).read_text())
-            except (OSError, ValueError):
-                old = None
-            old = old if isinstance(old, dict) else None
+            old = read_identity(p)
             if old != meta:
-                why = (f"{_meta_path(p).name} (what it ran) is missing or unreadable" if old is None else
+                why = (f"{identity_path(p).name} (what it ran) is missing or unreadable" if old is None else
                        f"it ran with other settings: {_settings_diff(old, meta)}")
                 raise ConfigError(f"{p} is kept from an earlier run ({why}): give another --out, or --overwrite to "
                                   "replace it")
-        write_text_atomic(_meta_path(p), json.dumps(meta, indent=1) + "\n")
+        write_text_atomic(identity_path(p), json.dumps(meta, indent=1) + "\n")
     done: list[dict] = []
 
     def keep(i, row):  # on disk every 10 trials (atomically): an interrupted session loses at most 9
