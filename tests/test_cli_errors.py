@@ -43,6 +43,8 @@ def table(d):
         ["task", "run", "orientation-training", "--front-back", "2"],
         ["task", "run", "speaker-following", "--resume", "--overwrite", "--out", str(d / "sf")],
         ["task", "run", "orientation-training", "--first", "3"],
+        ["task", "run", "orientation-training", "--overwrite"],  # nothing to replace: no --out
+        ["task", "run", "speaker-following", "--overwrite"],
         ["eval", "--task", "AudioGoal", "--agent", "random", "--resume", "--overwrite", "--csv", str(d / "e.csv")],
         # a checkpoint of another task: it would run with the same sensors and score as if meant for this one
         ["task", "run", "speaker-following", "--agent", "av-nav", "--checkpoint", AV_NAV],

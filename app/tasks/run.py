@@ -48,6 +48,8 @@ def run_task(task: str, agent: str | None = None, episodes: int = 10, split: str
     agent = agent or spec.agents[0]
     if first < 0:
         raise ConfigError(f"--first must be >= 0, got {first}")
+    if overwrite and not out:
+        raise ConfigError("--overwrite replaces the CSV in --out, and there is none: give --out")
     if spec.kind == "trials":
         for flag, v in (("--first", first), ("--jobs", jobs > 1), ("--resume", resume)):
             if v:
@@ -223,6 +225,8 @@ def run_in_vr(task: str, agent: str | None = None, episodes: int = 1, split: str
     spec = task_spec(task)
     if spec.frame_task is None:
         raise ConfigError(f"task '{spec.cli}' has no VR version")
+    if overwrite and not out:
+        raise ConfigError("--overwrite replaces the CSV in --out, and there is none: give --out")
     scenes = [scene] if scene else homes(split)
     rows: list[dict] = []
     csv_path = Path(out) / f"{spec.cli}_{agent or spec.agents[0]}_{backend}_s{seed}.csv" if out else None
