@@ -204,10 +204,10 @@ class SemNavMap(NavEgoMap):
         if self.teach:  # train --teacher scripted: sem-nav acts on the same observations (seeded by the episode)
             import zlib
 
-            from agents.semnav import SemNavAgent
+            from agents.semnav import RouteTeacher
 
             seed = zlib.crc32(str(env.unwrapped.episode.episode_id).encode())
-            self.teacher = SemNavAgent(np.random.default_rng(seed))
+            self.teacher = RouteTeacher(np.random.default_rng(seed))  # as the shipped route policies learnt it
             self.teacher.reset(env, obs, info)
             self.ears = self.teacher.ears  # its ears name the sound for both (one classification a step)
         else:

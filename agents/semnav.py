@@ -141,6 +141,7 @@ class SemNavAgent(MapAgent):
     BACKOFF = 3  # steps reversing after a bump
     GAP_W = 4.0  # m of driving worth 1 m nearer the object at the stop
     SWITCH_M = 2.0  # m better another sighting must score to be taken instead of the one it drives to
+    DILATE_LESS = True  # no frontier on the dilated map: look again on maps dilated less before wandering
     LEVEL_REJECT = 1.0  # |ln(distance / the level's)| beyond which a sighting is passed over (2.5 sigma of the fit)
     LATE = 0.7  # after this share of the steps, every sighting counts
     LEVEL_M = 3.0  # m of path a sighting costs per unit of |ln(its distance from the start / the level's)|
@@ -267,22 +268,20 @@ class SemNavAgent(MapAgent):
     # --- deciding where to go ---------------------------------------------------------------------------------
     def _choose(self, p) -> None:
         """Plan: to the named category's best sighting if there is one (:meth:`_sighting`), else to the frontier
-        cheapest by path plus its angle off the bearing, else to a random reachable cell."""
-        from scipy.ndimage import binary_dilation
-
+        cheapest by path plus its angle off the bearing (:meth:`_frontier`), else to a random reachable cell. When
+        the map, its obstacles dilated by the robot's radius, shuts the robot in a pocket with no frontier (a gap
+        between furniture narrower than the dilation, or bump marks), it looks for frontiers on the map dilated less
+        (``DILATE_LESS``) before it wanders."""
         s, blocked, dist, pred = self._reachable(p, self.INFLATE)
         goal, self.mode = self._sighting(blocked, dist), "approach"
         if goal is None:
             self.target, self.mode = None, "explore"
-            unknown = (self.occ < 2) & ~self.floor
-            front = self.floor & ~blocked & binary_dilation(unknown) & np.isfinite(dist)  # seen floor by unmapped
-            front &= dist * self.CELL >= self.FRONTIER_MIN
-            if front.any():
-                cand = np.argwhere(front)
-                pc = self._post_cost(cand)
-                cost = dist[cand[:, 0], cand[:, 1]] * self.CELL + (
-                    self.BEARING_M * self._off_bearing(self._xy(cand)) if pc is None else pc)
-                goal = cand[int(np.argmin(cost))]
+            goal = self._frontier(blocked, dist)
+            for k in range(self.INFLATE - 1, -1, -1) if self.DILATE_LESS else ():
+                if goal is not None:
+                    break
+                s, blocked, dist, pred = self._reachable(p, k)
+                goal = self._frontier(blocked, dist)
         if goal is None:  # nothing left to explore on the map: wander to a random reachable cell
             cand = np.argwhere(np.isfinite(dist) & (dist * self.CELL >= self.FRONTIER_MIN))
             if len(cand):
@@ -291,6 +290,22 @@ class SemNavAgent(MapAgent):
         self.path = self._xy(cells) if cells else np.array([p])
         self.k = min(2, len(self.path) - 1)
         self.since_plan = 0
+
+    def _frontier(self, blocked: np.ndarray, dist: np.ndarray):
+        """The frontier cell (seen floor beside unmapped space) at least ``FRONTIER_MIN`` away cheapest by path
+        plus its angle off the bearing (or the gan's grid where it has one, :meth:`_post_cost`); None if none."""
+        from scipy.ndimage import binary_dilation
+
+        unknown = (self.occ < 2) & ~self.floor
+        front = self.floor & ~blocked & binary_dilation(unknown) & np.isfinite(dist)
+        front &= dist * self.CELL >= self.FRONTIER_MIN
+        if not front.any():
+            return None
+        cand = np.argwhere(front)
+        pc = self._post_cost(cand)
+        cost = dist[cand[:, 0], cand[:, 1]] * self.CELL + (
+            self.BEARING_M * self._off_bearing(self._xy(cand)) if pc is None else pc)
+        return cand[int(np.argmin(cost))]
 
     def _sighting(self, blocked: np.ndarray, dist: np.ndarray):
         """The cell to stop at beside the named category's best sighted cluster (sightings within 0.2 m), and
@@ -422,3 +437,12 @@ class SemNavAgent(MapAgent):
                 self.mode, self.facing, self.since_plan = "explore", 0, self.REPLAN
             return self._out([0.0, 0.0], stop=True)
         return self._out(wheels)
+
+
+class RouteTeacher(SemNavAgent):
+    """sem-nav as the shipped route policies (``train --map route``: ``av-nav``, ``savi`` and ``multitask`` on
+    SemanticAudioNav and AudioGoal) were trained to read it, and as their README figures were measured: it wanders
+    where the dilated map shuts it in (before session 55). Its drawn route is those policies' input, so a changed
+    teacher would change what every shipped checkpoint sees; a retrain on :class:`SemNavAgent` would move them."""
+
+    DILATE_LESS = False
