@@ -440,9 +440,10 @@ class SemNavAgent(MapAgent):
 
 
 class RouteTeacher(SemNavAgent):
-    """sem-nav as the shipped route policies (``train --map route``: ``av-nav``, ``savi`` and ``multitask`` on
-    SemanticAudioNav and AudioGoal) were trained to read it, and as their README figures were measured: it wanders
-    where the dilated map shuts it in (before session 55). Its drawn route is those policies' input, so a changed
-    teacher would change what every shipped checkpoint sees; a retrain on :class:`SemNavAgent` would move them."""
+    """sem-nav as the shipped route policies' README figures were measured with (``train --map route``: ``av-nav``,
+    ``savi`` and ``multitask`` on SemanticAudioNav, ``av-nav`` on AudioGoal) and, but for session 53's AudioGoal
+    grid, as they were trained on it: it wanders where the dilated map shuts it in (before session 55). Its drawn
+    route is those policies' input, so a changed teacher would change what every shipped checkpoint sees; a
+    retrain on :class:`SemNavAgent` would carry the fix to them."""
 
     DILATE_LESS = False
