@@ -190,8 +190,8 @@ class SemNavMap(NavEgoMap):
     scene's labels, as Habitat's semantic sensor), a stand-in for an object detector on RGB: what the paper's agents
     learn from RGB, this map is told.
 
-    With ``teach`` set (``train --teacher scripted``) a :class:`agents.semnav.SemNavAgent` acts on the same
-    observations each step; its action (``action``) is the imitation label."""
+    With ``teach`` set (``train --teacher scripted``) sem-nav (:class:`agents.semnav.RouteTeacher`, as the shipped
+    policies learnt it) acts on the same observations each step; its action (``action``) is the imitation label."""
 
     CHANNELS = 5
     teach = False
@@ -244,7 +244,7 @@ class RouteNavMap(SemNavMap):
     """:class:`SemNavMap` with a sixth channel, the way sem-nav would go now (``train --map route`` on AudioGoal and
     SemanticAudioNav; ``map_kind`` "route"), as :class:`agents.following.EgoMap` draws the scripted follower's:
 
-    5. :class:`agents.semnav.SemNavAgent`'s route from the robot, at 255 to a sighting of the named category it
+    5. sem-nav's route from the robot (:class:`agents.semnav.RouteTeacher`), at 255 to a sighting of the named category it
        would stop beside, at 128 to the frontier it would explore; while it would turn to face the sighting, the
        line from the robot to it at 255; empty while it turns on the spot to hear the sound first.
 
