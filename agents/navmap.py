@@ -244,9 +244,9 @@ class RouteNavMap(SemNavMap):
     """:class:`SemNavMap` with a sixth channel, the way sem-nav would go now (``train --map route`` on AudioGoal and
     SemanticAudioNav; ``map_kind`` "route"), as :class:`agents.following.EgoMap` draws the scripted follower's:
 
-    5. sem-nav's route from the robot (:class:`agents.semnav.RouteTeacher`), at 255 to a sighting of the named category it
-       would stop beside, at 128 to the frontier it would explore; while it would turn to face the sighting, the
-       line from the robot to it at 255; empty while it turns on the spot to hear the sound first.
+    5. sem-nav's route from the robot (:class:`agents.semnav.RouteTeacher`), at 255 to a sighting of the named
+       category it would stop beside, at 128 to the frontier it would explore; while it would turn to face the
+       sighting, the line from the robot to it at 255; empty while it turns on the spot to hear the sound first.
 
     sem-nav runs on the robot's own observations every step (as the follower's map runs the scripted follower), so
     this map is as privileged as sem-nav: the semantic camera's ground-truth category ids, nothing else. With
