@@ -271,7 +271,7 @@ class SemNavAgent(MapAgent):
         cheapest by path plus its angle off the bearing (:meth:`_frontier`), else to a random reachable cell. When
         the map, its obstacles dilated by the robot's radius, shuts the robot in a pocket with no frontier (a gap
         between furniture narrower than the dilation, or bump marks), it looks for frontiers on the map dilated less
-        (``DILATE_LESS``) before it wanders."""
+        (``DILATE_LESS``) before it wanders, and then wanders on the least dilated map (the one it looked on last)."""
         s, blocked, dist, pred = self._reachable(p, self.INFLATE)
         goal, self.mode = self._sighting(blocked, dist), "approach"
         if goal is None:
@@ -282,7 +282,7 @@ class SemNavAgent(MapAgent):
                     break
                 s, blocked, dist, pred = self._reachable(p, k)
                 goal = self._frontier(blocked, dist)
-        if goal is None:  # nothing left to explore on the map: wander to a random reachable cell
+        if goal is None:  # nothing left to explore on the map: wander to a random reachable cell (of the last map)
             cand = np.argwhere(np.isfinite(dist) & (dist * self.CELL >= self.FRONTIER_MIN))
             if len(cand):
                 goal = cand[int(self.rng.integers(len(cand)))]
