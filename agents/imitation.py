@@ -67,7 +67,7 @@ class ImitationConfig:
     # default, DEFAULT_HOMES["train"] = 16)
     egomap: bool = False  # an egocentric map input, any of the three policies (MAP_TASKS: EgoMap when following,
     # else NavEgoMap)
-    route: bool = False  # with egomap on ROUTE_TASKS: RouteNavMap, sem-nav's route drawn in (train --map route)
+    route: bool = False  # with egomap on ROUTE_TASKS: RouteNavMap2, sem-nav's route drawn in (train --map route)
     teacher: str = "oracle"  # whose actions are the labels: the privileged "oracle", or (speaker following with
     # the map) the "scripted" follower, or (SemanticAudioNav with the map) sem-nav, which act on what the map
     # shows, so their labels do not ask for what the policy cannot know (the imitation gap); the goal heads still
@@ -525,7 +525,7 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
         raise ConfigError(f"teacher must be oracle or scripted, got {cfg.teacher!r}")
     if cfg.route and not (cfg.egomap and cfg.task in ROUTE_TASKS):
         raise ConfigError(f"--map route is for {' and '.join(ROUTE_TASKS)}")
-    if cfg.teacher == "scripted" and not (map_kind_for(cfg) in ("follow", "sem", "route") if cfg.egomap
+    if cfg.teacher == "scripted" and not (map_kind_for(cfg) in ("follow", "sem", "route2") if cfg.egomap
                                           else cfg.task in ("AudioGoal", "SemanticAudioNav")):
         raise ConfigError("--teacher scripted is for --map on SpeakerFollowing (the scripted follower draws the map) "
                           "or SemanticAudioNav (sem-nav acts on what the semantic map shows), --map route on "

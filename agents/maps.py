@@ -3,8 +3,10 @@ what training (:mod:`agents.imitation`, :mod:`agents.ppo`) and playing (:mod:`ag
 
 A policy's ``map_kind`` (its config's, when it has a map input) names its map: "follow" the speaker follower's
 :class:`agents.following.EgoMap` (from the task's floor plan), "nav" :class:`agents.navmap.NavEgoMap` (from depth,
-sound and odometry), "sem" :class:`agents.navmap.SemNavMap` (that and the named category's sightings), "route"
-:class:`agents.navmap.RouteNavMap` (that and the way sem-nav would go now).
+sound and odometry), "sem" :class:`agents.navmap.SemNavMap` (that and the named category's sightings), "route2"
+:class:`agents.navmap.RouteNavMap2` (that and the way sem-nav would go now: what ``train --map route`` trains) and
+"route" :class:`agents.navmap.RouteNavMap` (the same drawn by sem-nav before session 55, as the files trained before
+session 56 read it).
 """
 from __future__ import annotations
 
@@ -18,13 +20,14 @@ MAP_SENSORS = SENSORS + ("audio",)  # a policy with a map input: EgoMap listens 
 
 
 MAP_TASKS = {"SpeakerFollowing": "follow", "AudioGoal": "nav", "SemanticAudioNav": "sem"}  # train --map: which map
-ROUTE_TASKS = ("AudioGoal", "SemanticAudioNav")  # train --map route: sem-nav's route drawn in (RouteNavMap)
+ROUTE_TASKS = ("AudioGoal", "SemanticAudioNav")  # train --map route: sem-nav's route drawn in (RouteNavMap2)
+ROUTE_KINDS = ("route", "route2")  # the map kinds with sem-nav's route drawn in
 #: the env sensors sem-nav acts on (SemNavExpert, RouteNavMap)
 SEMNAV_SENSORS = ("depth", "semantic", "spectrogram", "audio", "pose", "bump")
 #: the env sensors a policy with each kind of map acts on (EgoMap listens to the raw block; SemNavMap reads the
 #: semantic camera, and its teacher, sem-nav, the raw block; RouteNavMap runs sem-nav every step)
 MAP_KIND_SENSORS = {"follow": MAP_SENSORS, "nav": SENSORS, "sem": SENSORS + ("semantic", "audio"),
-                    "route": SEMNAV_SENSORS}
+                    "route": SEMNAV_SENSORS, "route2": SEMNAV_SENSORS}
 
 
 def _map_kind(model) -> str | None:
@@ -42,9 +45,9 @@ def map_class(kind: str):
         from agents.following import EgoMap
 
         return EgoMap
-    from agents.navmap import NavEgoMap, RouteNavMap, SemNavMap
+    from agents.navmap import NavEgoMap, RouteNavMap, RouteNavMap2, SemNavMap
 
-    return {"sem": SemNavMap, "route": RouteNavMap}.get(kind, NavEgoMap)
+    return {"sem": SemNavMap, "route": RouteNavMap, "route2": RouteNavMap2}.get(kind, NavEgoMap)
 
 
 def ego_for(model):
@@ -69,8 +72,9 @@ def floor_shield(model, ego, horizon_s: float | None = SHIELD_S):
 
 
 def map_kind_for(cfg: "ImitationConfig") -> str:
-    """The kind of map ``cfg`` trains a policy to read (with ``cfg.egomap``): the task's, or "route"."""
-    return "route" if cfg.route else MAP_TASKS.get(cfg.task, "nav")
+    """The kind of map ``cfg`` trains a policy to read (with ``cfg.egomap``): the task's, or "route2" (the current
+    sem-nav's route)."""
+    return "route2" if cfg.route else MAP_TASKS.get(cfg.task, "nav")
 
 
 def collect_sensors(cfg: "ImitationConfig") -> tuple:

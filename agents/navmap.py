@@ -190,11 +190,18 @@ class SemNavMap(NavEgoMap):
     scene's labels, as Habitat's semantic sensor), a stand-in for an object detector on RGB: what the paper's agents
     learn from RGB, this map is told.
 
-    With ``teach`` set (``train --teacher scripted``) sem-nav (:class:`agents.semnav.RouteTeacher`, as the shipped
-    policies learnt it) acts on the same observations each step; its action (``action``) is the imitation label."""
+    With ``teach`` set (``train --teacher scripted``) sem-nav (``teacher_class()``: :class:`agents.semnav.SemNavAgent`)
+    acts on the same observations each step; its action (``action``) is the imitation label."""
 
     CHANNELS = 5
     teach = False
+
+    @staticmethod
+    def teacher_class():
+        """The sem-nav this map runs with ``teach`` (the current one)."""
+        from agents.semnav import SemNavAgent
+
+        return SemNavAgent
 
     def reset(self, env, obs, info) -> None:
         super().reset(env, obs, info)
@@ -204,10 +211,8 @@ class SemNavMap(NavEgoMap):
         if self.teach:  # train --teacher scripted: sem-nav acts on the same observations (seeded by the episode)
             import zlib
 
-            from agents.semnav import RouteTeacher
-
             seed = zlib.crc32(str(env.unwrapped.episode.episode_id).encode())
-            self.teacher = RouteTeacher(np.random.default_rng(seed))  # as the shipped route policies learnt it
+            self.teacher = self.teacher_class()(np.random.default_rng(seed))
             self.teacher.reset(env, obs, info)
             self.ears = self.teacher.ears  # its ears name the sound for both (one classification a step)
         else:
@@ -242,18 +247,31 @@ class SemNavMap(NavEgoMap):
 
 class RouteNavMap(SemNavMap):
     """:class:`SemNavMap` with a sixth channel, the way sem-nav would go now (``train --map route`` on AudioGoal and
-    SemanticAudioNav; ``map_kind`` "route"), as :class:`agents.following.EgoMap` draws the scripted follower's:
+    SemanticAudioNav; ``map_kind`` "route2", or "route" for the files trained before session 56), as
+    :class:`agents.following.EgoMap` draws the scripted follower's:
 
-    5. sem-nav's route from the robot (:class:`agents.semnav.RouteTeacher`), at 255 to a sighting of the named
-       category it would stop beside, at 128 to the frontier it would explore; while it would turn to face the
-       sighting, the line from the robot to it at 255; empty while it turns on the spot to hear the sound first.
+    5. sem-nav's route from the robot, at 255 to a sighting of the named category it would stop beside, at 128 to
+       the frontier it would explore; while it would turn to face the sighting, the line from the robot to it at
+       255; empty while it turns on the spot to hear the sound first.
 
     sem-nav runs on the robot's own observations every step (as the follower's map runs the scripted follower), so
     this map is as privileged as sem-nav: the semantic camera's ground-truth category ids, nothing else. With
-    ``train --teacher scripted`` its action is also the label, so the policy learns actions its map explains."""
+    ``train --teacher scripted`` its action is also the label, so the policy learns actions its map explains.
+
+    Which sem-nav draws it is part of what a policy learnt to read, so it is kept per ``map_kind``: this class
+    (kind "route") runs :class:`agents.semnav.RouteTeacher`, sem-nav before session 55's way out of pockets, which
+    the shipped files of sessions 44-53 were measured with; :class:`RouteNavMap2` (kind "route2", what ``train
+    --map route`` trains now) runs the current :class:`agents.semnav.SemNavAgent`."""
 
     CHANNELS = 6
     teach = True  # sem-nav acts every step, to draw its route (its action is the label only with --teacher scripted)
+
+    @staticmethod
+    def teacher_class():
+        """The sem-nav that draws the route: as the "route" files learnt it."""
+        from agents.semnav import RouteTeacher
+
+        return RouteTeacher
 
     def observe(self, obs, info) -> np.ndarray:
         img = super().observe(obs, info)
@@ -267,6 +285,13 @@ class RouteNavMap(SemNavMap):
             draw_route(img[5], p, yaw, np.vstack([p[None], t.path[min(t.k, len(t.path) - 1):]]), self.RES,
                        255 if t.mode == "approach" else 128)
         return img
+
+
+class RouteNavMap2(RouteNavMap):
+    """:class:`RouteNavMap` whose route the current :class:`agents.semnav.SemNavAgent` draws (``map_kind`` "route2":
+    ``train --map route`` since session 56)."""
+
+    teacher_class = staticmethod(SemNavMap.teacher_class)
 
 
 def map_semantic(seen: np.ndarray, depth: np.ndarray, sem: np.ndarray, lut: np.ndarray, p, yaw: float, fx: float,

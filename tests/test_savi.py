@@ -180,7 +180,7 @@ def test_a_short_imitation_run_trains_checkpoints_and_plays(tmp_path, agent):
     assert isinstance(model, SAVi) and model.arch == agent and meta["config"]["agent"] == agent
     assert (model.occ is not None) == (agent == "multitask")
     assert model.cfg.map_shape == ((6, 32, 32) if route else ()) and (model.egomap is not None) == bool(route)
-    assert not route or model.cfg.map_kind == "route"
+    assert not route or model.cfg.map_kind == "route2"
     assert model.window == 4 and meta["window"] == 4  # the second stage's memory (iterations 1-2)
     from agents.models import save_policy
 

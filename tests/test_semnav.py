@@ -117,10 +117,12 @@ def test_the_route_map_draws_the_way_sem_nav_would_go():
     """RouteNavMap (`train --map route`): channel 5 is empty while sem-nav turns on the spot to hear the sound, then
     shows its route from the robot. Drawn back onto the world through the robot's pose, every lit pixel lies within
     a pixel's diagonal of the polyline sem-nav drives (a mirrored or rotated image fails), at 128 while it explores
-    and 255 once it drives to a sighting. A policy trained with it records the kind and reads sem-nav's sensors."""
+    and 255 once it drives to a sighting. A policy trained with it records the kind ("route2": the current sem-nav
+    draws it) and reads sem-nav's sensors; the files of kind "route" keep the sem-nav they learnt to read."""
     from agents.imitation import ImitationConfig, build_policy
     from agents.maps import MAP_KIND_SENSORS, ego_for, sensors_for
-    from agents.navmap import RouteNavMap
+    from agents.navmap import RouteNavMap, RouteNavMap2
+    from agents.semnav import RouteTeacher, SemNavAgent
     from sonicverse_core.tasks import make_env
 
     S, R = RouteNavMap.SIZE, RouteNavMap.RES
@@ -129,8 +131,9 @@ def test_the_route_map_draws_the_way_sem_nav_would_go():
     env = make_env("SemanticAudioNav", split="val", sensors=MAP_KIND_SENSORS["route"], width=64, height=64)
     try:
         obs, info = env.reset(seed=1)
-        m = RouteNavMap()
+        m = RouteNavMap2()
         m.reset(env, obs, info)
+        assert type(m.teacher) is SemNavAgent and m.teacher.DILATE_LESS
         drawn, modes = 0, set()
         for _ in range(60):
             img = m.observe(obs, info)
@@ -156,8 +159,14 @@ def test_the_route_map_draws_the_way_sem_nav_would_go():
     finally:
         env.close()
     pol = build_policy(ImitationConfig(task="AudioGoal", egomap=True, route=True), (2, 65, 26), 2)
-    assert pol.cfg.map_kind == "route" and pol.cfg.map_shape == (6, S, S)
-    assert isinstance(ego_for(pol), RouteNavMap) and set(sensors_for(pol)) >= {"semantic", "bump", "audio"}
+    assert pol.cfg.map_kind == "route2" and pol.cfg.map_shape == (6, S, S)
+    assert type(ego_for(pol)) is RouteNavMap2 and set(sensors_for(pol)) >= {"semantic", "bump", "audio"}
+    import dataclasses
+
+    pol.cfg = dataclasses.replace(pol.cfg, map_kind="route")  # as the files trained before session 56 hold it
+    old = ego_for(pol)
+    assert type(old) is RouteNavMap and old.teacher_class() is RouteTeacher and not RouteTeacher.DILATE_LESS
+    assert sensors_for(pol) == MAP_KIND_SENSORS["route2"]
 
 
 def test_the_shipped_audio_goal_policy_reads_the_route_and_beats_random(audiogoal_random_test9):
