@@ -38,12 +38,14 @@ def test_distance_gains(mode):
 
 
 def test_read_sources():
-    n, B, H = 3, 64, 512
+    n, B, H = 6, 64, 512
     bank = RNG.normal(size=1000).astype(np.float32)
-    off, length = np.array([1, 200, 500]), np.array([150, 90, 400])
-    cursor = np.array([0, 60, 380])
-    loop = np.array([True, True, False])
-    gain = np.array([0.5, 2.0, 1.0])
+    # looping: no wrap, one wrap, a loop shorter than the block (wraps 3 times), a cursor many loops on; one-shot:
+    # ending inside the block, ended before it
+    off, length = np.array([1, 200, 500, 950, 300, 10]), np.array([150, 90, 400, 17, 33, 40])
+    cursor = np.array([0, 60, 380, 5, 1000 * 33 + 31, 70])
+    loop = np.array([True, True, False, True, True, False])
+    gain = np.array([0.5, 2.0, 1.0, 0.7, 1.3, 1.0])
     ring = np.full((n, H), 7.0, np.float32)
     K.read_sources(bank, off, length, cursor.copy(), loop, gain, ring, 100, B)
     for i in range(n):
@@ -53,7 +55,7 @@ def test_read_sources():
         else:
             ref = np.where(k < length[i], bank[off[i] + np.minimum(k, length[i] - 1)], 0) * np.float32(gain[i])
         np.testing.assert_allclose(ring[i, 100:100 + B], ref, rtol=1e-6)
-    assert np.all(ring[:, :100] == 7.0)  # nothing outside the block is touched
+    assert np.all(ring[:, :100] == 7.0) and np.all(ring[:, 100 + B:] == 7.0)  # nothing outside the block is touched
 
 
 def test_mix_spectra_and_accumulate():
@@ -201,35 +203,38 @@ def test_late_send():
     fresh = np.array([False, True, False])
     use_occ = np.array([True, True, False])  # the third source's room is known: no transmission factor
     group = np.array([0, 1, 1])
-    out = np.empty((2, B), np.float32)
-    pd = p_delay.copy()
     rt = np.array([0.6, 1.4])  # each group's decay: the source's room's
     # the coupled modes heard apart, per group: the slowest, a neighbour's (its own, faster decay), an idle one
     rt_modes = np.array([[2.0, 2.5], [1.1, 1.6], [0.0, 0.0]])
     p_modes = np.array([[0.3, 0.2, 0.4], [0.0, 0.1, 0.0], [0.1, 0.3, 0.2]])
-    out_modes = np.empty((3, 2, B), np.float32)
-    pm = p_modes.copy()
-    LK.late_send(ring, 40, dist, occ, use_occ, group, rt, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012,
-                 rt_modes, pm, out_modes, np.empty((2, 3)), np.empty(B, np.float32))
-    D0 = np.where(fresh, D, p_delay)
-    r = (np.arange(B) + 1) / B
-    rows = np.arange(n)[:, None]
-    new_ = ring[rows, (40 + np.arange(B)[None] - D[:, None]) % H]  # delayed: wraps the ring
-    old_ = ring[rows, (40 + np.arange(B)[None] - D0[:, None]) % H]
-    src = np.where((D0 == D)[:, None], new_, old_ * (1 - r) + new_ * r)
-    cases = [(out, rt[group], p_send)] + [(out_modes[k], rt_modes[k][group], p_modes[:, k]) for k in range(3)]
-    for k, (sends, T, prev) in enumerate(cases):
-        T = np.maximum(T, 0.05)
-        s = 10 ** (-0.174 * dist / T / 20 - 3 * 0.012 / T) * np.where(use_occ, np.sqrt(occ[:, 4:7].mean(1)), 1.0)
-        if k == 3:  # the idle mode: its sends ramp to silence
-            s = np.zeros(n)
-        s0 = np.where(fresh, s, prev)
-        ramp = s0[:, None] + (s - s0)[:, None] * r
-        for g in (0, 1):
-            np.testing.assert_allclose(sends[g], (src * ramp)[group == g].sum(0), rtol=1e-5, atol=1e-6)
-        if k:
-            np.testing.assert_allclose(pm[:, k - 1], s)
-    assert np.array_equal(pd, D)
+    # the first source's read across the ring's wrap, the third source's old read (it crossfades) across it, the
+    # block read wholly behind the ring's start (it wraps)
+    for w0 in (int(D[0]) - 10, int(D[2]) + 20, 40):
+        out = np.empty((2, B), np.float32)
+        pd = p_delay.copy()
+        out_modes = np.empty((3, 2, B), np.float32)
+        pm = p_modes.copy()
+        LK.late_send(ring, w0, dist, occ, use_occ, group, rt, p_send.copy(), pd, fresh, out, FS, 343.0, 0.012,
+                     rt_modes, pm, out_modes, np.empty((2, 3)), np.empty(B, np.float32))
+        D0 = np.where(fresh, D, p_delay)
+        r = (np.arange(B) + 1) / B
+        rows = np.arange(n)[:, None]
+        new_ = ring[rows, (w0 + np.arange(B)[None] - D[:, None]) % H]  # delayed: wraps the ring
+        old_ = ring[rows, (w0 + np.arange(B)[None] - D0[:, None]) % H]
+        src = np.where((D0 == D)[:, None], new_, old_ * (1 - r) + new_ * r)
+        cases = [(out, rt[group], p_send)] + [(out_modes[k], rt_modes[k][group], p_modes[:, k]) for k in range(3)]
+        for k, (sends, T, prev) in enumerate(cases):
+            T = np.maximum(T, 0.05)
+            s = 10 ** (-0.174 * dist / T / 20 - 3 * 0.012 / T) * np.where(use_occ, np.sqrt(occ[:, 4:7].mean(1)), 1.0)
+            if k == 3:  # the idle mode: its sends ramp to silence
+                s = np.zeros(n)
+            s0 = np.where(fresh, s, prev)
+            ramp = s0[:, None] + (s - s0)[:, None] * r
+            for g in (0, 1):
+                np.testing.assert_allclose(sends[g], (src * ramp)[group == g].sum(0), rtol=1e-5, atol=1e-6)
+            if k:
+                np.testing.assert_allclose(pm[:, k - 1], s)
+        assert np.array_equal(pd, D)
     # a mode's distance law is its own: 0.174 r (1 / T_k - 1 / T_slow) dB below the slowest mode's
     assert not np.allclose(out_modes[0], out_modes[1])
     # no mode sends: out_modes (0, G, B) is left alone, the sends are the same
@@ -507,15 +512,54 @@ def test_room_image_taps_keep_exactly_the_specular_paths_the_mesh_leaves_open(sp
     assert wrong <= (0 if not two else 0.03 * kept), (wrong, kept)
 
 
+def test_occlusion_logs_match_the_crossings_twin():
+    """The occlusion recast's reduction of a walk's hits, against the NumPy path it replaced: the walk's crossings
+    sorted by distance, a sounding object's own parts left out (``own_object_crossings``), each part once per
+    segment at its nearest crossing, its material's log transmission summed. Segments through walls, doors and
+    objects of a home, some starting inside an object (its sound position), the hits in shuffled order."""
+    from sonicverse_core.acoustics.occlusion import own_object_crossings, sounding_bounds
+    from sonicverse_core.geometry.raycast import SceneRayCaster
+    from sonicverse_core.scene import load_scene
+    from sonicverse_core.scene.materials import material_arrays
+
+    s = load_scene("builtin:apartment?seed=0")
+    rc = SceneRayCaster(s)
+    lo, hi = s.bounds
+    rng = np.random.default_rng(5)
+    objs = [o.sound_position() for o in s.objects if o.world_bounds() is not None][:20]
+    a = np.concatenate([np.array(objs), rng.uniform(lo, hi, (60, 3))])
+    a[len(objs):, 2] = rng.uniform(0.3, 2.0, 60)
+    b = rng.uniform(lo, hi, (len(a), 3))
+    b[:, 2] = 1.6
+    log_trans = 0.5 * np.log(np.maximum(material_arrays()[2], 1e-12))
+    bounds = sounding_bounds(s)
+    off = rc.part_offset()
+    cr = rc.crossings(a, b)
+    keep = ~own_object_crossings(bounds, off, cr, a)
+    ray, part, mat = cr.ray[keep], cr.part[keep], cr.material[keep]
+    _, first = np.unique(ray * (int(part.max()) + 1) + part, return_index=True)
+    want = np.zeros((len(a), log_trans.shape[1]))
+    np.add.at(want, ray[first], log_trans[mat[first]])
+    assert (~keep).sum() >= 5 and len(first) < keep.sum() and (want < 0).any(axis=1).sum() >= 20  # all cases met
+    ray, dist, face, ci, casters = rc.walk(a, b)
+    order = rng.permutation(len(ray))
+    sm, dm = casters[0][0].mesh, casters[1][0].mesh
+    got = np.full_like(want, 9.0)
+    K.occlusion_logs(ray[order], dist[order], face[order], ci[order], sm.face_part, sm.face_material, dm.face_part,
+                     dm.face_material, off, bounds, a, log_trans, got)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
 def test_every_kernel_has_a_twin():
     """A kernel added without a twin fails here."""
     import inspect
 
     here = "".join(open(__file__.replace("test_kernels.py", f)).read()
                    for f in ("test_kernels.py", "test_engine.py", "test_long_tail.py"))
-    # K's private _tap (inside gather's twin), _image, _sh9 (inside image_taps' and room_image_taps' twins); EK's
+    # K's private _tap and _tap_runs (inside gather's twin), _crossed_part (inside occlusion_logs'), _image, _sh9
+    # (inside image_taps' and room_image_taps' twins); LK's _ring_copy and _ring_fade (inside late_send's); EK's
     # _blocked and _inside (inside room_image_taps' twin)
-    for mod, prefix, private in ((K, "K", 3), (LK, "LK", 0), (EK, "EK", 2)):
+    for mod, prefix, private in ((K, "K", 5), (LK, "LK", 2), (EK, "EK", 2)):
         kernels = {n for n, f in vars(mod).items() if hasattr(f, "py_func") and not n.startswith("_")
                    and f.__module__ == mod.__name__}
         missing = sorted(n for n in kernels if f"{prefix}.{n}(" not in here and f"import {n}" not in here)

@@ -109,8 +109,8 @@ class Direct:
             p_delay[fresh], p_gain[fresh], p_spec[fresh] = delay[fresh], gain[fresh], spec[fresh]
         h = st.hist[:n]
         shift_left(h.reshape(-1, self.nfft), B)
-        gather(r._ring, r.write - B, p_delay, delay, float(cfg.sample_rate), p_gain[:, None], gain[:, None],
-               h[:, :, -B:])  # (n, 2, B) fractional-delay taps, straight into the overlap-save input
+        gather(r._ring, r.write - B, p_delay, delay, float(cfg.sample_rate), p_gain[:, None], gain[:, None], h,
+               self.nfft - B)  # (n, 2, B) fractional-delay taps, straight into the overlap-save input's end
         self._ffts(st, n).run()
         acc = st.acc
         changed = accumulate(st.X[:n], spec, p_spec, acc[1], acc[0])

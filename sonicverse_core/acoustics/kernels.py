@@ -17,30 +17,46 @@ _fast = dict(_opts, fastmath={"reassoc", "contract", "nsz", "arcp"})
 
 @njit(**_opts)
 def read_sources(bank, off, length, cursor, loop, gain, ring, w0, B):
-    """Copy each source's next B samples (looping or one-shot, scaled by its gain) into ring[:, w0:w0+B]."""
+    """Copy each source's next B samples (looping or one-shot, scaled by its gain) into ring[:, w0:w0+B]. Copied
+    in runs between the loop's wraps (a modulo per sample cost several times the copy)."""
     n = len(off)
     for i in range(n):
         L = length[i]
         c = cursor[i]
         g = np.float32(gain[i])
-        for t in range(B):
-            k = c + t
-            if loop[i]:
-                ring[i, w0 + t] = bank[off[i] + k % L] * g
-            elif k < L:
-                ring[i, w0 + t] = bank[off[i] + k] * g
-            else:
-                ring[i, w0 + t] = 0.0
+        dst = ring[i, w0:w0 + B]
+        if L <= 0:
+            for t in range(B):
+                dst[t] = 0.0
+        elif loop[i]:
+            src = bank[off[i]:off[i] + L]
+            p = c % L
+            t = 0
+            while t < B:
+                m = min(B - t, L - p)
+                for k in range(m):
+                    dst[t + k] = src[p + k] * g
+                t += m
+                p = 0
+        else:
+            src = bank[off[i]:off[i] + L]
+            m = min(B, max(L - c, 0))
+            for k in range(m):
+                dst[k] = src[c + k] * g
+            for k in range(m, B):
+                dst[k] = 0.0
         cursor[i] = c + B
 
 
 @njit(**_opts)
-def gather(ring, base, d_old, d_new, fs, g_old, g_new, out):
-    """Fractional-delay taps with linear interpolation: out[i, e, t] = ring[i, base + t - d(t) fs] * g(t), where
-    delay d and gain g ramp linearly from *_old to *_new across the block (t = 1..B). ring (n, H);
-    d_* (n, E); g_* (n, E) or (n, 1); out (n, E, B) float32."""
-    n, E, B = out.shape
-    H = ring.shape[1]
+def gather(ring, base, d_old, d_new, fs, g_old, g_new, out, col):
+    """Fractional-delay taps with linear interpolation: out[i, e, col + t] = ring[i, base + t - d(t) fs] * g(t),
+    where delay d and gain g ramp linearly from *_old to *_new across the block (t = 1..B, B = L - col). ring
+    (n, H); d_* (n, E); g_* (n, E) or (n, 1); out (n, E, L) float32, C-contiguous (a block's taps written into the
+    end of a longer row, e.g. an overlap-save input, keep their rows contiguous: the common case's loop is
+    vectorised only then)."""
+    n, E, L = out.shape
+    B = L - col
     for i in range(n):
         for e in range(E):
             d0 = d_old[i, e] * fs
@@ -50,9 +66,9 @@ def gather(ring, base, d_old, d_new, fs, g_old, g_new, out):
             dg = (g_new[i, ge] - g0) / B
             if g0 == 0.0 and dg == 0.0:
                 for t in range(B):
-                    out[i, e, t] = 0.0
+                    out[i, e, col + t] = 0.0
                 continue
-            _tap(ring[i], base, d0, dd, g0, dg, out[i, e])
+            _tap(ring[i], base, d0, dd, g0, dg, out[i, e, col:])
 
 
 @njit(**_opts)
@@ -79,7 +95,10 @@ def _tap(row, base, d0, dd, g0, dg, out):
     start = (base - d0 - dd) % H  # read position of t = 0, in [0, H)
     step = 1.0 - dd
     end = start + step * (B - 1)
-    if step >= 0.0 and end < H - 2 and step < 1e6:  # common case, no wrap inside the block: 32.32 fixed point
+    if abs(dd) * B <= 8.0 and end < H - 3:  # the common case: slow motion, no wrap inside the block
+        _tap_runs(row, start, dd, g0, dg, out)
+        return
+    if step >= 0.0 and end < H - 2 and step < 1e6:  # faster motion, no wrap inside the block: 32.32 fixed point
         p = np.int64(start * 4294967296.0)
         inc = np.int64(step * 4294967296.0)
         g = g0 + dg
@@ -101,6 +120,40 @@ def _tap(row, base, d0, dd, g0, dg, out):
             j1 = 0
         a = row[j]
         out[t] = (a + (row[j1] - a) * fr) * (g0 + dg * (t + 1))
+
+
+@njit(**_opts)
+def _tap_runs(row, start, dd, g0, dg, out):
+    """_tap's common case: the delay moves by at most 8 samples across the block and the reads do not wrap. The
+    read position start + (1 - dd) t is split into runs of samples whose integer part is j0 + e + t for one e (a
+    run ends where the delay has moved by a whole sample, |dd| B + 1 runs at most), so each run reads the row
+    contiguously and its loop is vectorised (a per-sample index would make it a gather)."""
+    B = len(out)
+    j0 = int(start)
+    f0 = start - j0  # the fraction at t = 0, in [0, 1)
+    ta = 0
+    while ta < B:
+        e = np.floor(f0 - dd * ta)  # this run's offset: floor(position) = j0 + e + t
+        if dd > 0.0:  # the fraction falls: the run lasts while f0 - dd t >= e
+            tb = ta + 1 + int(min((f0 - dd * ta - e) / dd, float(B)))
+        elif dd < 0.0:  # it rises: while f0 - dd t < e + 1
+            tb = ta + 1 + int(min((e + 1.0 - f0 + dd * ta) / -dd, float(B)))
+        else:
+            tb = B
+        tb = min(tb, B)
+        while tb > ta + 1 and np.floor(f0 - dd * (tb - 1)) != e:  # rounding: the same expression decides
+            tb -= 1
+        while tb < B and np.floor(f0 - dd * tb) == e:
+            tb += 1
+        o = j0 + int(e) + ta
+        x = row[o:o + tb - ta + 1]
+        y = out[ta:tb]
+        fa = f0 - e - dd * ta
+        ga = g0 + dg * (ta + 1)
+        for k in range(tb - ta):
+            a = x[k]
+            y[k] = (a + (x[k + 1] - a) * np.float32(fa - dd * k)) * np.float32(ga + dg * k)
+        ta = tb
 
 
 @njit(**_fast)
@@ -567,3 +620,46 @@ def segments_meet_boxes(a, b, lo, hi, out):
                 hit = True
                 break
         out[i] = hit
+
+
+@njit(**_opts)
+def _crossed_part(j, face, ci, s_part, s_mat, d_part, d_mat, offset):
+    """The part (dynamic parts shifted by offset) and material of hit j of a walk (:meth:`SceneRayCaster.walk`:
+    caster 0 the static mesh, 1 the dynamic one)."""
+    f = face[j]
+    if ci[j] == 0:
+        return np.int64(s_part[f]), np.int64(s_mat[f])
+    return np.int64(d_part[f]) + offset, np.int64(d_mat[f])
+
+
+@njit(**_opts)
+def occlusion_logs(ray, dist, face, ci, s_part, s_mat, d_part, d_mat, offset, bounds, starts, log_trans, logamp):
+    """What the occlusion recast makes of a walk's hits (ray, dist, face, ci (k,), in any order): per segment r,
+    the sum over the parts it crosses, each part once with its nearest crossing's material (ties: the earlier
+    hit), of log_trans[material] (bands), into logamp (n, bands). A dynamic part q - offset whose bounds
+    (:func:`occlusion.sounding_bounds`, (m, 2, 3)) hold the segment's start (starts (n, 3)) is the object the sound
+    comes from and is left out (:func:`occlusion.own_object_crossings`)."""
+    logamp[:] = 0.0
+    k = len(ray)
+    for j in range(k):
+        r = ray[j]
+        p, m = _crossed_part(j, face, ci, s_part, s_mat, d_part, d_mat, offset)
+        q = p - offset
+        if ci[j] != 0 and 0 <= q < bounds.shape[0]:
+            own = True
+            for c in range(3):
+                if not (bounds[q, 0, c] <= starts[r, c] <= bounds[q, 1, c]):
+                    own = False
+            if own:
+                continue
+        first = True
+        for jj in range(k):
+            if jj == j or ray[jj] != r:
+                continue
+            p2, m2 = _crossed_part(jj, face, ci, s_part, s_mat, d_part, d_mat, offset)
+            if p2 == p and (dist[jj] < dist[j] or (dist[jj] == dist[j] and jj < j)):
+                first = False
+                break
+        if first:
+            for c in range(logamp.shape[1]):
+                logamp[r, c] += log_trans[m, c]

@@ -63,6 +63,43 @@ def buildup_filter(sends, hist, delay, gain, skip):
 
 
 @njit(**_opts)
+def _ring_copy(row, s, v):
+    """v[t] = row[(s + t) mod H]: in runs between the ring's wrap (a modulo per sample cost several times the
+    copy)."""
+    B, H = len(v), len(row)
+    j = s % H
+    t = 0
+    while t < B:
+        m = min(B - t, H - j)
+        x = row[j:j + m]
+        y = v[t:t + m]
+        for k in range(m):
+            y[k] = x[k]
+        t += m
+        j = 0
+
+
+@njit(**_opts)
+def _ring_fade(row, s0, s1, v):
+    """v[t] = row[(s0 + t) mod H] (1 - r) + row[(s1 + t) mod H] r, r = (t + 1) / B: a crossfade between two read
+    positions of a ring, in runs between either position's wrap."""
+    B, H = len(v), len(row)
+    j0, j1 = s0 % H, s1 % H
+    t = 0
+    while t < B:
+        m = min(B - t, H - j0, H - j1)
+        x0 = row[j0:j0 + m]
+        x1 = row[j1:j1 + m]
+        y = v[t:t + m]
+        for k in range(m):
+            r = (t + k + 1) / B
+            y[k] = x0[k] * (1.0 - r) + x1[k] * r
+        t += m
+        j0 = (j0 + m) % H
+        j1 = (j1 + m) % H
+
+
+@njit(**_opts)
 def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fresh, out, fs, c_sound, t_mix,
               rt_modes, p_modes, out_modes, qs, v):
     """Sends to the late reverb, one per group of sources (out (G, B): the groups are the rooms the sources are in,
@@ -118,12 +155,9 @@ def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fr
             continue
         g = group[i]
         if D0 == D:
-            for t in range(B):
-                v[t] = ring[i, (w0 + t - D) % H]
+            _ring_copy(ring[i], w0 - D, v)
         else:
-            for t in range(B):
-                r = (t + 1) / B
-                v[t] = ring[i, (w0 + t - D0) % H] * (1.0 - r) + ring[i, (w0 + t - D) % H] * r
+            _ring_fade(ring[i], w0 - D0, w0 - D, v)
         ds = (s - s0) / B
         for t in range(B):
             out[g, t] += v[t] * np.float32(s0 + ds * (t + 1))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sonicverse_core.acoustics.kernels import count_over, segment_motion, segments_meet_boxes
+from sonicverse_core.acoustics.kernels import count_over, occlusion_logs, segment_motion, segments_meet_boxes
 from sonicverse_core.acoustics.state import PerSource
 from sonicverse_core.scene.materials import BANDS, material_arrays
 
@@ -200,26 +200,25 @@ class Occlusion:
         if not np.any(todo):
             return
         idx = np.flatnonzero(todo)
-        a, b = pos[idx], np.broadcast_to(lis, (len(idx), 3))
+        a = pos[idx]
         lo, hi = self._boxes()
         near = np.zeros(len(idx), bool)
         if len(lo):
             segments_meet_boxes(a, lis, lo, hi, near)
-        cast = np.flatnonzero(near & (np.linalg.norm(b - a, axis=1) > 1e-6))
+        cast = np.flatnonzero(near & (np.linalg.norm(lis - a, axis=1) > 1e-6))
         self.stats["occlusion_rays"] += len(cast)
         self.stats["occlusion_skipped"] += len(idx) - len(cast)
-        target = np.ones((len(idx), len(BANDS)))
+        occ_target[idx] = 1.0
         if len(cast):
-            cr = self.caster.crossings(a[cast], b[cast])
+            ac = a[cast]
+            ray, dist, face, ci, casters = self.caster.walk(ac, np.broadcast_to(lis, (len(cast), 3)))
             if self._bounds[0] != version:
                 self._bounds = (version, sounding_bounds(self.scene))
-            keep = ~own_object_crossings(self._bounds[1], self.caster.part_offset(), cr, a[cast])  # not its own wall
-            ray, part, mat = cr.ray[keep], cr.part[keep], cr.material[keep]
-            if len(ray):
-                key = ray.astype(np.int64) * (int(part.max()) + 1) + part
-                _, first = np.unique(key, return_index=True)  # a part counts once per segment
-                logamp = np.zeros((len(cast), len(BANDS)))
-                np.add.at(logamp, ray[first], self._log_trans[mat[first]])
-                target[cast] = np.exp(logamp)
-        occ_target[idx] = target
-        st.seg[idx] = np.concatenate([a, b], axis=1)
+            sm = casters[0][0].mesh
+            dm = casters[1][0].mesh if len(casters) > 1 else sm
+            logamp = np.empty((len(cast), len(BANDS)))
+            occlusion_logs(ray, dist, face, ci, sm.face_part, sm.face_material, dm.face_part, dm.face_material,
+                           self.caster.part_offset(), self._bounds[1], ac, self._log_trans, logamp)
+            occ_target[idx[cast]] = np.exp(logamp)  # a part counts once per segment; not its own object's
+        st.seg[idx, :3] = a
+        st.seg[idx, 3:] = lis

@@ -172,47 +172,12 @@ class SceneRayCaster:
                     np.where(closer[:, None], g.normal, h.normal))
 
     def crossings(self, a, b, include_dynamic: bool = True, max_hits: int = 64) -> Crossings:
-        """Every surface crossed by the segments a[i] -> b[i] ((n, 3) each).
-
-        Walks each segment hit by hit; the real-time occlusion path calls this per block, so a step is one Embree
-        query plus a few array operations on the rays still walking (:meth:`RayCaster.faces`), not a full
-        :meth:`first_hit` (an order of magnitude more overhead per step for one or two rays)."""
-        a = np.atleast_2d(np.asarray(a, dtype=np.float64))
-        b = np.atleast_2d(np.asarray(b, dtype=np.float64))
-        seg = b - a
-        length = np.linalg.norm(seg, axis=1)
-        rays, dists, faces, which = [], [], [], []  # per step: the rays that hit, where, the face, the caster
-        casters = [(self.static, 0, False)]
-        if include_dynamic and self.scene.objects:
-            casters.append((self.dynamic, self.part_offset(), True))
-        start = np.flatnonzero(length > STEP_EPS)
-        d0 = seg[start] / length[start, None]
-        for ci, (caster, off, dyn) in enumerate(casters):
-            if caster.empty:
-                continue
-            active, d, travelled = start, d0, np.zeros(len(start))
-            o, left = a[start], length[start]
-            for _ in range(max_hits):
-                if len(active) == 0:
-                    break
-                face, dist = caster.faces(o + d * travelled[:, None], d, left - travelled)
-                hit = face >= 0
-                if not hit.all():
-                    if not hit.any():
-                        break
-                    active, d, o, left = active[hit], d[hit], o[hit], left[hit]
-                    travelled, face, dist = travelled[hit], face[hit], dist[hit]
-                t = travelled + dist
-                rays.append(active)
-                dists.append(t)
-                faces.append(face)
-                which.append(np.full(len(active), ci, np.int8))
-                travelled = t + STEP_EPS
-        if not rays:
+        """Every surface crossed by the segments a[i] -> b[i] ((n, 3) each)."""
+        ray, dist, face, ci, casters = self.walk(a, b, include_dynamic, max_hits)
+        if not len(ray):
             e = np.zeros(0)
             return Crossings(e.astype(np.int64), e, e.astype(np.int64), e.astype(np.int64), e.astype(bool),
                              e.astype(np.int64))
-        ray, dist, face, ci = (np.concatenate(x) for x in (rays, dists, faces, which))
         order = np.lexsort((dist, ray))
         ray, dist, face, ci = ray[order], dist[order], face[order], ci[order]
         part = np.empty(len(ray), self.static.mesh.face_part.dtype)
@@ -230,6 +195,49 @@ class SceneRayCaster:
                 dynamic[sel] = True
                 glob[sel] = f + len(self.scene.static_mesh())
         return Crossings(ray, dist, part, material, dynamic, glob)
+
+    def walk(self, a, b, include_dynamic: bool = True, max_hits: int = 64):
+        """The hits of :meth:`crossings` unsorted and unlabelled: (ray, distance, face, caster index) (k,) each, in
+        the order they were found, and the casters [(RayCaster, part offset, dynamic)] the index refers to.
+
+        Walks each segment hit by hit; the real-time occlusion path calls this per block, so a step is one Embree
+        query plus a few array operations on the rays still walking (:meth:`RayCaster.faces`), not a full
+        :meth:`first_hit` (an order of magnitude more overhead per step for one or two rays)."""
+        a = np.atleast_2d(np.asarray(a, dtype=np.float64))
+        b = np.atleast_2d(np.asarray(b, dtype=np.float64))
+        seg = b - a
+        length = np.linalg.norm(seg, axis=1)
+        rays, dists, faces, which = [], [], [], []  # per step: the rays that hit, where, the face, the caster
+        casters = [(self.static, 0, False)]
+        if include_dynamic and self.scene.objects:
+            casters.append((self.dynamic, self.part_offset(), True))
+        start = np.flatnonzero(length > STEP_EPS)
+        d0 = seg[start] / length[start, None]
+        for ci, (caster, off, dyn) in enumerate(casters):
+            if caster.empty or not len(start):
+                continue
+            active, d, travelled = start, d0, np.zeros(len(start))
+            o, left = a[start], length[start]
+            for _ in range(max_hits):
+                face, dist = caster.faces(o + d * travelled[:, None], d, left - travelled)
+                hit = face >= 0
+                k = np.count_nonzero(hit)
+                if k == 0:
+                    break
+                if k < len(hit):
+                    active, d, o, left = active[hit], d[hit], o[hit], left[hit]
+                    travelled, face, dist = travelled[hit], face[hit], dist[hit]
+                t = travelled + dist
+                rays.append(active)
+                dists.append(t)
+                faces.append(face)
+                which.append(ci)
+                travelled = t + STEP_EPS
+        if not rays:
+            e = np.zeros(0)
+            return e.astype(np.int64), e, e.astype(np.int64), e.astype(np.int8), casters
+        ci = np.repeat(np.array(which, np.int8), [len(r) for r in rays])
+        return np.concatenate(rays), np.concatenate(dists), np.concatenate(faces), ci, casters
 
     def line_of_sight(self, a, b, include_dynamic: bool = True) -> np.ndarray:
         """(n,) bool: nothing lies between a[i] and b[i]."""
