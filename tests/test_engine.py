@@ -365,3 +365,18 @@ def test_bench_audio_times_blocks_without_the_collector_and_restores_it(monkeypa
     assert gc.isenabled() and seen and not any(seen)
     assert d["garbage_collector"].startswith("frozen and off")
     assert warmed == [0] and d["kernels"].startswith("warmed")  # as the live workers: before the first block
+
+
+def test_bench_audio_breakdown_accounts_for_every_subsystem_built():
+    """``bench audio --breakdown``: one share per subsystem the scene built (a door's home: occlusion and paths
+    too), each timed inside the block, so the shares and the rest add up to the mean block and the rest is not
+    negative; without the flag, no breakdown."""
+    from app.bench.engine import bench_audio
+
+    d = bench_audio(4, 0.2, "builtin:apartment", reference_blocks=1, breakdown=True)
+    shares = d["per_subsystem"]
+    assert set(shares) == {"direct", "early", "late", "occlusion", "paths", "other", "mean_block"}
+    parts = [v for k, v in shares.items() if k not in ("other", "mean_block")]
+    assert all(v > 0 for v in parts) and shares["other"] >= 0
+    assert sum(parts) + shares["other"] == pytest.approx(shares["mean_block"], abs=2e-3)
+    assert "per_subsystem" not in bench_audio(2, 0.1, "shoebox:6x4x3", reference_blocks=1)

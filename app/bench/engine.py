@@ -80,7 +80,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                 sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = True,
                 reverb: str = "convolution", er_images: str = "room", er_order: int = 1,
                 neighbour_tails: int | None = None, listener_room: str | None = None, walk: float = 0.15,
-                tail_partitions: str = "auto") -> dict:
+                tail_partitions: str = "auto", breakdown: bool = False) -> dict:
     """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
     reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how
     many room tails it convolves and from how many rooms sources send to it), with the listener walking and turning every block (so every source's direction, delay and
@@ -91,7 +91,10 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     the slowest mode's (``RenderConfig``); ``listener_room``: the room the listener starts in (default: anywhere);
     ``walk``: the listener's speed (m/s) round a 0.3 m circle (a person walking in VR: about 1-1.4 m/s; the
     occlusion recast and the late re-mix follow the listener's steps, so they run more often the faster it walks);
-    ``tail_partitions``: the convolution tails' partitions (``RenderConfig.tail_partitions``)."""
+    ``tail_partitions``: the convolution tails' partitions (``RenderConfig.tail_partitions``); ``breakdown``: also
+    time each subsystem's share of the timed blocks (``per_subsystem``: mean fraction of the block per subsystem,
+    "other" the sources' reads, the smoothing, the limiter; one clock read either side of each subsystem's render,
+    so the blocks' own figures include that little more)."""
     from scipy.signal import oaconvolve
 
     from sonicverse_core.acoustics.renderer import RenderConfig
@@ -101,6 +104,14 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     cfg = RenderConfig(sample_rate=sample_rate, block=block, reverb=reverb, er_images=er_images, er_order=er_order,
                        neighbour_tails=neighbour_tails, tail_partitions=tail_partitions)
     r = _audio_scene(spec, n_sources, seed, cfg, per_room, listener_room)
+    spent: dict[str, float] = {}
+    if breakdown:  # each subsystem's render timed where the renderer calls it (an instance attribute, this run only)
+        for part in r.parts:
+            def timed(st, ls, lis_, out, _render=part.render, _name=part.name):
+                t0 = time.perf_counter()
+                _render(st, ls, lis_, out)
+                spent[_name] = spent.get(_name, 0.0) + time.perf_counter() - t0
+            part.render = timed
     lis = r.listeners[0]
     start = lis.position.copy()
     block_s = block / sample_rate
@@ -126,6 +137,8 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
             t = (i + 50) * block_s
             pos = start + np.array([0.3 * np.sin(omega * t), 0.3 * np.cos(omega * t), 0.0])  # a walk (slow by
             r.set_listener(lis, pos, 40.0 * t % 360.0)  # default) and a head turning at 40 deg/s
+            if i == 0:
+                spent.clear()  # the warm-up blocks are not counted
             t0 = time.perf_counter()
             r.render_block()
             if i >= 0:
@@ -149,7 +162,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                 acc[e] += oaconvolve(x[k], brir[e])
         ref.append(time.perf_counter() - t0)
     ref_frac = np.array(ref) / block_s
-    return {
+    res = {
         "bench": "audio", "scene": spec, "sources": n_sources, "sample_rate": sample_rate, "block": block,
         "per_room": per_room, "reverb": reverb, "er_images": er_images, "er_order": er_order,
         "neighbour_tails": neighbour_tails, "listener_room": listener_room, "walk_m_per_s": walk,
@@ -170,3 +183,9 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                          "rooms_sending_to_the_reverb": {"mean": round(float(sending.mean()), 2),
                                                          "max": int(sending.max())}},
     }
+    if breakdown:
+        shares = {k: v / n_blocks / block_s for k, v in spent.items()}
+        res["per_subsystem"] = {**{k: round(v, 4) for k, v in sorted(shares.items(), key=lambda kv: -kv[1])},
+                                "other": round(float(frac.mean()) - sum(shares.values()), 4),
+                                "mean_block": round(float(frac.mean()), 4)}
+    return res

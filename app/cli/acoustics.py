@@ -181,6 +181,8 @@ def add_audio_commands(sub, bench_sub) -> None:
     ba.add_argument("--walk", type=A.number(0.0, 3.0, unit="m/s"), default=0.15, metavar="M/S",
                     help="the listener's walking speed on its 0.3 m circle, m/s (default: %(default)s; a person "
                     "walking in VR: about 1-1.4)")
+    ba.add_argument("--breakdown", action="store_true",
+                    help="also report each subsystem's mean share of the block (per_subsystem)")
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
@@ -252,7 +254,8 @@ def cmd_bench_audio(a) -> int:
     print(json.dumps(bench_audio(a.sources, a.seconds, a.scene, sample_rate=a.sample_rate, block=a.block,
                                  per_room=a.per_room, reverb=a.reverb, er_images=a.er_images,
                                  er_order=a.er_order, neighbour_tails=a.neighbour_tails,
-                                 listener_room=a.listener_room, walk=a.walk, tail_partitions=a.tail_partitions)))
+                                 listener_room=a.listener_room, walk=a.walk, tail_partitions=a.tail_partitions,
+                                 breakdown=a.breakdown)))
     return 0
 
 
