@@ -117,7 +117,9 @@ class TailBuildUp:
         self._g = np.zeros(self.K)
         self.rt = None
         self.L = int(np.round(self._at.max() * tau * fs)) + 1
-        self.hist = np.zeros((groups, self.L + block), np.float32)
+        self.hist = np.zeros((groups, self.L + 8 * block), np.float32)  # moved to the front every 8 blocks
+        self.pos = self.L  # where this block goes: the last L samples end here
+        self._acc = np.zeros(block)
 
     def _taps(self, rt60: float) -> None:
         te = min(self.tau, max(rt60, 0.05) / 13.8155 / 3.0)
@@ -131,10 +133,12 @@ class TailBuildUp:
         if self.rt != rt60:
             self.rt = rt60
             self._taps(rt60)
-        buildup_filter(sends, self.hist, self.delay, self.gain, 1 + lis_room if lis_room >= 0 else 0)
+        self.pos = buildup_filter(sends, self.hist, self.L, self.pos, self.delay, self.gain,
+                                  1 + lis_room if lis_room >= 0 else 0, self._acc)
 
     def reset(self) -> None:
         self.hist[:] = 0.0
+        self.pos = self.L
 
 
 class LateReverb:

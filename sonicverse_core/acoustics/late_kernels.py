@@ -42,24 +42,36 @@ def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm, y):
 
 
 @njit(**_opts)
-def buildup_filter(sends, hist, delay, gain, skip):
+def buildup_filter(sends, hist, L, pos, delay, gain, skip, acc):
     """The other rooms' sends through the build-up's taps, in place (``late.TailBuildUp``): sends (G, B); hist
-    (G, L + B) the sends' last L samples then this block's (shifted here); out[g, t] = sum_k gain[k] x[g, t -
-    delay[k]] for every group but 0 and ``skip`` (the listener's own room's)."""
+    (G, W), W >= L + B: the sends' last L samples end at column ``pos`` and this block is written after them (when
+    it would not fit, the last L samples move to the front first: a copy every (W - L) / B blocks, not a shift of L
+    every block); out[g, t] = sum_k gain[k] x[g, t - delay[k]] (delay < L) for every group but 0 and ``skip`` (the
+    listener's own room's), summed in float64 over k in order. acc (B,) float64 scratch. Returns the new ``pos``."""
     G, B = sends.shape
-    L = hist.shape[1] - B
+    W = hist.shape[1]
+    if pos + B > W:
+        for g in range(G):
+            h = hist[g]
+            for t in range(L):
+                h[t] = h[pos - L + t]
+        pos = L
     for g in range(G):
-        for t in range(L):
-            hist[g, t] = hist[g, t + B]
+        h = hist[g]
         for t in range(B):
-            hist[g, L + t] = sends[g, t]
+            h[pos + t] = sends[g, t]
         if g == 0 or g == skip:
             continue
         for t in range(B):
-            acc = 0.0
-            for k in range(len(delay)):
-                acc += gain[k] * hist[g, L + t - delay[k]]
-            sends[g, t] = acc
+            acc[t] = 0.0
+        for k in range(len(delay)):
+            a = gain[k]  # float32 x float32, then summed in float64, as the per-sample loop did
+            x = h[pos - delay[k]:pos - delay[k] + B]
+            for t in range(B):
+                acc[t] += a * x[t]
+        for t in range(B):
+            sends[g, t] = acc[t]
+    return pos + B
 
 
 @njit(**_opts)
