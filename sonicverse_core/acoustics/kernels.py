@@ -17,8 +17,8 @@ _fast = dict(_opts, fastmath={"reassoc", "contract", "nsz", "arcp"})
 
 @njit(**_opts)
 def read_sources(bank, off, length, cursor, loop, gain, ring, w0, B):
-    """Copy each source's next B samples (looping or one-shot, scaled by its gain) into ring[:, w0:w0+B]. Copied
-    in runs between the loop's wraps (a modulo per sample cost several times the copy)."""
+    """Copy each source's next B samples (looping or one-shot, scaled by its gain) into ring[:, w0:w0+B]; a loop
+    in runs between its wraps (:func:`_wrap_copy`)."""
     n = len(off)
     for i in range(n):
         L = length[i]
@@ -29,15 +29,7 @@ def read_sources(bank, off, length, cursor, loop, gain, ring, w0, B):
             for t in range(B):
                 dst[t] = 0.0
         elif loop[i]:
-            src = bank[off[i]:off[i] + L]
-            p = c % L
-            t = 0
-            while t < B:
-                m = min(B - t, L - p)
-                for k in range(m):
-                    dst[t + k] = src[p + k] * g
-                t += m
-                p = 0
+            _wrap_copy(bank[off[i]:off[i] + L], c, g, dst)
         else:
             src = bank[off[i]:off[i] + L]
             m = min(B, max(L - c, 0))
@@ -46,6 +38,23 @@ def read_sources(bank, off, length, cursor, loop, gain, ring, w0, B):
             for k in range(m, B):
                 dst[k] = 0.0
         cursor[i] = c + B
+
+
+@njit(**_opts)
+def _wrap_copy(src, s, g, dst):
+    """dst[t] = src[(s + t) mod len(src)] g (g float32): a ring or a loop read in runs between its wraps (a modulo
+    per sample cost several times the copy)."""
+    B, H = len(dst), len(src)
+    j = s % H
+    t = 0
+    while t < B:
+        m = min(B - t, H - j)
+        x = src[j:j + m]
+        y = dst[t:t + m]
+        for k in range(m):
+            y[k] = x[k] * g
+        t += m
+        j = 0
 
 
 @njit(**_opts)
@@ -656,7 +665,7 @@ def occlusion_logs(ray, dist, face, ci, s_part, s_mat, d_part, d_mat, offset, bo
         for jj in range(k):
             if jj == j or ray[jj] != r:
                 continue
-            p2, m2 = _crossed_part(jj, face, ci, s_part, s_mat, d_part, d_mat, offset)
+            p2, _ = _crossed_part(jj, face, ci, s_part, s_mat, d_part, d_mat, offset)
             if p2 == p and (dist[jj] < dist[j] or (dist[jj] == dist[j] and jj < j)):
                 first = False
                 break

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from sonicverse_core.acoustics.kernels import _fast, _opts
+from sonicverse_core.acoustics.kernels import _fast, _opts, _wrap_copy
 
 
 @njit(**_opts)
@@ -75,26 +75,9 @@ def buildup_filter(sends, hist, L, pos, delay, gain, skip, acc):
 
 
 @njit(**_opts)
-def _ring_copy(row, s, v):
-    """v[t] = row[(s + t) mod H]: in runs between the ring's wrap (a modulo per sample cost several times the
-    copy)."""
-    B, H = len(v), len(row)
-    j = s % H
-    t = 0
-    while t < B:
-        m = min(B - t, H - j)
-        x = row[j:j + m]
-        y = v[t:t + m]
-        for k in range(m):
-            y[k] = x[k]
-        t += m
-        j = 0
-
-
-@njit(**_opts)
 def _ring_fade(row, s0, s1, v):
     """v[t] = row[(s0 + t) mod H] (1 - r) + row[(s1 + t) mod H] r, r = (t + 1) / B: a crossfade between two read
-    positions of a ring, in runs between either position's wrap."""
+    positions of a ring, in runs between either position's wrap (:func:`kernels._wrap_copy` reads one)."""
     B, H = len(v), len(row)
     j0, j1 = s0 % H, s1 % H
     t = 0
@@ -167,7 +150,7 @@ def late_send(ring, w0, dist, occ, use_occ, group, rt_group, p_send, p_delay, fr
             continue
         g = group[i]
         if D0 == D:
-            _ring_copy(ring[i], w0 - D, v)
+            _wrap_copy(ring[i], w0 - D, np.float32(1.0), v)
         else:
             _ring_fade(ring[i], w0 - D0, w0 - D, v)
         ds = (s - s0) / B
