@@ -1,7 +1,7 @@
 """The late reverb's compiled kernels (numba, cached on disk, GIL released; each has a NumPy twin in
-``tests/test_kernels.py``): the feedback delay network's per-sample loop, the sends to the reverb and their
-build-up from other rooms, the partitioned convolution's frequency-domain steps, the coupled rooms' groups and the
-neighbouring room's per-ear curve."""
+``tests/test_late_kernels.py``, the glue's in ``tests/test_kernels.py``): the feedback delay network's per-sample
+loop, the sends to the reverb and their build-up from other rooms, the partitioned convolution's frequency-domain
+steps, the coupled rooms' groups and the neighbouring room's per-ear curve."""
 from __future__ import annotations
 
 import numpy as np
