@@ -110,6 +110,17 @@ def stop_held():
         check_stopped()
 
 
+def stop_behind(exc: BaseException) -> Interrupted | None:
+    """The stop that ``exc`` stands for, or None when it is an error of its own. A raise from :func:`stop` can reach
+    the caller inside another exception: Python 3.11 wraps whatever is raised in a ``__set_name__`` (a dataclass's
+    field while a class body runs, say while a task module is imported) in a RuntimeError, and a library may re-raise
+    it as its own error. Once a stop is noted the process is on its way out, so every exception after it is that
+    stop (not Ctrl-C's KeyboardInterrupt, nor a SystemExit: None for those)."""
+    if isinstance(exc, Interrupted):
+        return exc
+    return Interrupted(_STOPPED[0]) if _STOPPED and isinstance(exc, Exception) else None
+
+
 def check_stopped() -> None:
     """Raise :class:`Interrupted` if :func:`stop` was called in this process (the loops call it every frame)."""
     if _STOPPED:

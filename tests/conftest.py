@@ -37,6 +37,23 @@ def rng():
     return np.random.default_rng(1234)
 
 
+@pytest.fixture
+def wrapped_stop():
+    """Fires a SIGTERM's raise (errors.stop) the way Python 3.11 hands it on when it lands while a class body binds
+    its fields (a task module being imported): inside a RuntimeError. The noted stop is cleared afterwards."""
+    from sonicverse_core import errors
+
+    class Field:
+        def __set_name__(self, owner, name):
+            errors.stop("terminated (SIGTERM)")
+
+    def fire():
+        type("Episode", (), {"extra": Field()})
+
+    yield fire
+    errors._STOPPED.clear()
+
+
 def run_cli(*args, check_rc=None):
     """Run the real console command in a subprocess; returns CompletedProcess."""
     exe = shutil.which("sonicverse", path=str(Path(sys.executable).parent))

@@ -149,6 +149,33 @@ def test_a_refused_output_names_the_file_asked_for(capsys):
     assert err.startswith("sonicverse: error:") and err.endswith(": /proc/out.wav") and ".tmp" not in err, err
 
 
+def _command_that_runs(func, monkeypatch):
+    import argparse
+
+    import app.cli as cli
+
+    parser = argparse.ArgumentParser()
+    parser.set_defaults(func=func, verbose=0)
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+
+
+def test_a_stop_that_python_wrapped_is_still_one_line_and_exit_2(wrapped_stop, monkeypatch, capsys):
+    """CI saw SIGTERM land while a task module was imported: Python wrapped the handler's raise in a RuntimeError
+    and the command died with a traceback and exit 1."""
+    _command_that_runs(lambda args: wrapped_stop(), monkeypatch)
+    assert main([]) == 2
+    assert capsys.readouterr().err == "sonicverse: error: terminated (SIGTERM)\n"
+
+
+def test_an_error_of_our_own_is_not_taken_for_a_stop(monkeypatch):
+    def command(args):
+        raise RuntimeError("a bug")
+
+    _command_that_runs(command, monkeypatch)
+    with pytest.raises(RuntimeError, match="a bug"):  # no stop was noted: a bug stays a traceback, not a stop
+        main([])
+
+
 def test_help_and_version_exit_0(capsys):
     assert main(["--version"]) == 0 and capsys.readouterr().out.startswith("sonicverse ")
     assert main(["render", "--help"]) == 0 and "--seconds" in capsys.readouterr().out

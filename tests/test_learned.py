@@ -653,6 +653,30 @@ def test_a_stop_that_something_swallowed_still_ends_the_evaluation_at_the_next_s
     assert len(out.read_text().splitlines()) == 2
 
 
+def test_a_stop_that_python_wrapped_still_ends_the_evaluation_keeping_the_finished_episodes(tmp_path, monkeypatch):
+    """A SIGTERM landing while a class body binds its fields (a module being imported mid-episode) reaches the loop
+    as a RuntimeError: it is still the stop, and the CSV keeps the episode that finished."""
+    from app.tasks.evaluate import run_eval
+    from sonicverse_core import errors
+
+    (tmp_path / "late_import_policy.py").write_text(
+        "import numpy as np\n\nfrom sonicverse_core import errors\n\nEPISODES = []\n\n\nclass Field:\n"
+        "    def __set_name__(self, owner, name):\n        errors.stop('terminated (SIGTERM)')\n\n\n"
+        "class Policy:\n    def __init__(self, rng):\n        self.t = 0\n\n"
+        "    def reset(self, env, obs, info):\n        EPISODES.append(0)\n        self.t = 0\n\n"
+        "    def act(self, obs, info):\n        self.t += 1\n"
+        "        if len(EPISODES) == 2 and self.t == 3:\n            type('Late', (), {'extra': Field()})\n"
+        "        return np.array([0.5, 0.0], np.float32)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "x.csv"
+    try:
+        with pytest.raises(errors.Interrupted, match="^terminated .SIGTERM.; .* keeps its 1 finished episode"):
+            run_eval("AudioGoal", "late_import_policy:Policy", 3, seed=0, csv_path=out, env_kwargs={"max_steps": 10})
+    finally:
+        errors._STOPPED.clear()
+    assert len(out.read_text().splitlines()) == 2
+
+
 def test_a_failing_evaluation_job_stops_the_run_with_its_own_error(tmp_path, cli, monkeypatch):
     """An agent's bad action in one of `--jobs` processes reaches the user as that error, one line, exit 2; no
     episode finished, so no CSV is written."""

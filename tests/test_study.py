@@ -237,6 +237,33 @@ def test_a_stop_inside_a_commit_waits_for_its_end_and_stays_noted():
     errors.check_stopped()  # nothing noted: no raise
 
 
+def test_a_stop_that_python_wrapped_aborts_the_running_trial_and_points_to_resume(tmp_path, wrapped_stop,
+                                                                                 monkeypatch):
+    """CI saw SIGTERM land while a trial imported its task module: the raise came wrapped in a RuntimeError, the
+    running trial was not marked aborted and the last line said nothing of `study resume`."""
+    from sonicverse_core.errors import Interrupted
+
+    study = parse_study(SMALL)
+    store = StudyStore(tmp_path)
+    n = start_session(store, study, "W1")
+    runner = StudyRunner(store, study, "W1", n)
+    ran = []
+
+    def run(slot, check):
+        ran.append(slot.slot)
+        if len(ran) == 2:
+            wrapped_stop()
+        return {"azimuth_error_deg": 1.0}, {}, {}
+
+    monkeypatch.setattr(runner.trials, "run", run)
+    with pytest.raises(Interrupted, match=r"^terminated \(SIGTERM\): the running trial was not kept; continue with "
+                                          "`sonicverse study resume"):
+        runner.run()
+    assert sorted(store.finished_slots("W1", n)) == ran[:1]
+    assert [(e["slot"], e["detail"]) for e in store.events("W1", n) if e["kind"] == "aborted"] == [
+        (ran[1], "terminated (SIGTERM)")]
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_killed_in_a_trial_loses_at_most_that_trial_and_resumes(tmp_path, sig):
     study_file = tmp_path / "small.toml"

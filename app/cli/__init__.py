@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from app.cli import args as A
-from sonicverse_core.errors import SonicverseError, stop
+from sonicverse_core.errors import SonicverseError, stop, stop_behind
 
 
 def _json(obj) -> None:
@@ -215,6 +215,12 @@ def main(argv: list[str] | None = None) -> int:
         where = f": {exc.filename}" if getattr(exc, "filename", None) else ""
         print(f"sonicverse: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 2
+    except Exception as exc:
+        stopped = stop_behind(exc)  # SIGTERM's raise, wrapped by Python or a library on its way here
+        if stopped is None:
+            raise
+        print(f"sonicverse: error: {stopped}", file=sys.stderr)
+        return stopped.exit_code
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -14,7 +14,7 @@ import threading
 import time
 from contextlib import contextmanager
 
-from sonicverse_core.errors import Interrupted, StudyError, check_stopped, stop_held
+from sonicverse_core.errors import Interrupted, StudyError, check_stopped, stop_behind, stop_held
 
 
 class TrialSkipped(Exception):
@@ -23,6 +23,17 @@ class TrialSkipped(Exception):
 
 class TrialAborted(Exception):
     pass
+
+
+def _stop_reason(exc: BaseException) -> str | None:
+    """Why ``exc`` stops the session (the operator's abort, Ctrl-C, SIGTERM, even when a library wrapped its raise
+    on the way up), or None for an error of its own."""
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted (SIGINT)"
+    if isinstance(exc, TrialAborted):
+        return str(exc) or "aborted"
+    stop = stop_behind(exc)
+    return None if stop is None else str(stop) or "interrupted"
 
 
 class Controls:
@@ -159,10 +170,10 @@ class StudyRunner:
                     raise TrialAborted(self.controls.abort_reason)
                 self._trial(slot, len(plan))
                 prev = slot.block
-        except (TrialAborted, KeyboardInterrupt, Interrupted) as exc:
-            reason = str(exc) or "interrupted"
-            if isinstance(exc, KeyboardInterrupt):
-                reason = "interrupted (SIGINT)"
+        except BaseException as exc:
+            reason = _stop_reason(exc)
+            if reason is None:
+                raise
             self.on_event("aborted", {"reason": reason})
             raise Interrupted(f"{reason}: the running trial was not kept; continue with `sonicverse study resume "
                               f"--participant {pid} --data {st.root}`") from None
@@ -199,8 +210,11 @@ class StudyRunner:
             status = metrics.pop("_status", "done")  # or no_response: a person's trial that timed out
         except TrialSkipped:
             metrics, quality, raw, status = {}, {}, {}, "skipped"
-        except (TrialAborted, KeyboardInterrupt, Interrupted) as exc:
-            st.event(self.pid, self.session, "aborted", str(exc) or type(exc).__name__, slot.slot)
+        except BaseException as exc:
+            reason = _stop_reason(exc)
+            if reason is None:
+                raise
+            st.event(self.pid, self.session, "aborted", reason, slot.slot)
             raise
         with _signals_held():
             row = st.commit_trial(self.pid, self.session, slot, status, metrics, quality, raw, started,

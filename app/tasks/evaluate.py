@@ -122,11 +122,14 @@ def run_episodes(indices: list[int], play, args: tuple, *, jobs: int = 1, path: 
             _play_in_jobs(todo, min(jobs, len(todo)), play, args, sink, desc, bar=progress is not None)
         elif todo:
             play(todo, *args, report=sink, bar=progress is not None)
-    except (KeyboardInterrupt, errors.Interrupted) as exc:
+    except BaseException as exc:
+        stop = exc if isinstance(exc, KeyboardInterrupt) else errors.stop_behind(exc)  # SIGTERM's, maybe wrapped
+        if stop is None:
+            raise
         n = len(rows)
         kept = (f"{path} keeps its {n} finished episode{'s' if n > 1 else ''}: add --resume to play the rest"
                 if path and rows else "no episode had finished")
-        raise errors.Interrupted(f"{str(exc) or 'interrupted'}; {kept}") from None
+        raise errors.Interrupted(f"{str(stop) or 'interrupted'}; {kept}") from None
     return [rows[i] for i in indices]
 
 
