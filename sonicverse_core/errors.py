@@ -115,10 +115,20 @@ def stop_behind(exc: BaseException) -> Interrupted | None:
     the caller inside another exception: Python 3.11 wraps whatever is raised in a ``__set_name__`` (a dataclass's
     field while a class body runs, say while a task module is imported) in a RuntimeError, and a library may re-raise
     it as its own error. Once a stop is noted the process is on its way out, so every exception after it is that
-    stop (not Ctrl-C's KeyboardInterrupt, nor a SystemExit: None for those)."""
+    stop. Ctrl-C's KeyboardInterrupt wrapped the same way (an Exception caused by one, or raised while one was
+    handled) is a stop too: "interrupted". None for a bare KeyboardInterrupt or SystemExit."""
     if isinstance(exc, Interrupted):
         return exc
-    return Interrupted(_STOPPED[0]) if _STOPPED and isinstance(exc, Exception) else None
+    if not isinstance(exc, Exception):
+        return None
+    if _STOPPED:
+        return Interrupted(_STOPPED[0])
+    e, seen = exc, 0
+    while e is not None and seen < 32:  # a chain, not a cycle: bounded
+        if isinstance(e, KeyboardInterrupt):
+            return Interrupted("interrupted")
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return None
 
 
 def check_stopped() -> None:

@@ -167,6 +167,16 @@ def test_a_stop_that_python_wrapped_is_still_one_line_and_exit_2(wrapped_stop, m
     assert capsys.readouterr().err == "sonicverse: error: terminated (SIGTERM)\n"
 
 
+def test_ctrl_c_that_python_wrapped_is_still_one_line_and_exit_2(monkeypatch, capsys):
+    class Field:
+        def __set_name__(self, owner, name):
+            raise KeyboardInterrupt  # Ctrl-C landing while a class body binds its fields: a RuntimeError on 3.11
+
+    _command_that_runs(lambda args: type("Episode", (), {"extra": Field()}), monkeypatch)
+    assert main([]) == 2
+    assert capsys.readouterr().err == "sonicverse: error: interrupted\n"
+
+
 def test_an_error_of_our_own_is_not_taken_for_a_stop(monkeypatch):
     def command(args):
         raise RuntimeError("a bug")
