@@ -3,6 +3,7 @@ their docstrings: the FDN, the sends to the reverb and their build-up, the parti
 doorway's per-ear curve and delay (the glue kernels' twins are in test_kernels.py::test_block_glue_kernels, and
 test_kernels.py::test_every_kernel_has_a_twin checks every kernel of both modules has one)."""
 import numpy as np
+import pytest
 
 from sonicverse_core.acoustics import late_kernels as LK
 
@@ -176,3 +177,50 @@ def test_delayed_add():
         want = 1 + (1 - r) * hist[e, D - d0[e]:D - d0[e] + B] + r * hist[e, D - d1[e]:D - d1[e] + B]
         np.testing.assert_allclose(out[e], want, rtol=1e-12)
     np.testing.assert_allclose(out[1], 1 + hist[1, D - 5:D - 5 + B])  # a constant delay: the block delayed
+
+
+def _blend_twin(rt, mine, shut_of, weights, rt_now_mid, single):
+    """The late re-mix's blend as NumPy wrote it before the kernel (session 58's LateReverb._modal_mix)."""
+    if len(mine) == 0:
+        mine = np.array([int(np.argmax(weights))])
+    if single:
+        mine = mine[[int(np.argmax(weights[mine]))]]
+    p = weights[mine] if weights[mine].sum() > 0 else np.ones(len(mine))
+    p = p / p.sum()
+    shut = shut_of[mine]
+    o, s_ = rt[mine].T @ p, rt[shut].T @ p
+    o_mid, s_mid = o[4:7].mean(), s_[4:7].mean()
+    span = s_mid - o_mid
+    beta = float(np.clip((rt_now_mid - o_mid) / span, 0.0, 1.0)) if span > 0.01 * o_mid else 0.0
+    if single:
+        beta = float(beta > 0.5)
+    out = np.zeros(len(rt))
+    out[mine] = np.sqrt(p * (1 - beta))
+    out[shut] += np.sqrt(p * beta)
+    return out, (1 - beta) * o / o_mid + beta * s_ / s_mid, beta
+
+
+def test_tail_blend():
+    """Twin: the tails' weights and energies of the late re-mix, for rooms with and without a doors-shut tail, a room
+    without probes (the probe of most energy instead), one tail only (a neighbour's), weights all zero, and a
+    target decay below, between and above the room's open and shut ones."""
+    P = 7
+    room = np.array([0, 0, 0, 1, 1, 2, -1])
+    shut = np.arange(P)
+    shut[:3], shut[3:5] = [7, 8, 9], [10, 11]  # room 2 has no openings: its probe is its own shut tail
+    rt = np.abs(RNG.normal(0.5, 0.1, size=(P + 5, 9)))
+    rt[P:] += 0.4  # doors shut: a slower decay
+    out, e = np.empty(P + 5), np.empty(9)
+    cases = 0
+    for r_ in (0, 1, 2, 3):
+        mine = np.flatnonzero(room == r_)
+        for weights in (np.abs(RNG.normal(size=P)), np.zeros(P), np.r_[np.zeros(5), 1.0, 2.0]):
+            for single in (False, True):
+                for target in (0.1, 0.7, 2.0):
+                    want_out, want_e, want_beta = _blend_twin(rt, mine, shut, weights, target, single)
+                    beta = LK.tail_blend(rt, mine, shut, weights, target, single, 4, 7, out, e)
+                    np.testing.assert_allclose(out, want_out, rtol=1e-12, atol=1e-14)
+                    np.testing.assert_allclose(e, want_e, rtol=1e-12)
+                    assert beta == pytest.approx(want_beta, abs=1e-12)
+                    cases += 0 < want_beta < 1
+    assert cases > 0  # some blends fall between doors open and shut

@@ -11,7 +11,8 @@ import numpy as np
 from sonicverse_core.acoustics.direct import HEAD_RADIUS
 from sonicverse_core.acoustics.fft import band_bins
 from sonicverse_core.acoustics.kernels import farther, rows_moved
-from sonicverse_core.acoustics.late_kernels import buildup_filter, groups_sending, late_groups, late_send, mix_ramped
+from sonicverse_core.acoustics.late_kernels import (buildup_filter, groups_sending, late_groups, late_send, mix_ramped,
+                                                    tail_blend)
 from sonicverse_core.acoustics.probes import SPEED_OF_SOUND
 from sonicverse_core.acoustics.reverb import PortalEars
 from sonicverse_core.acoustics.sources import grown
@@ -180,6 +181,8 @@ class LateReverb:
                 self.tail_edt = np.vstack([self.tail_edt] + shut)
         self._colour = None
         self._portal_table = None
+        self._room_probes: dict = {}  # a room's probes (the re-mix's tails), found once
+        self._portal_D = (None, 0.0)  # _portal's absorption and couplings at 1 kHz for (door state, listener's room)
         self._apart_key, self._apart_val = None, ()  # _apart's answer for (coupling state, listener's room)
         self._listeners = 0  # listener states made (their reverbs' long partitions are staggered)
 
@@ -485,7 +488,7 @@ class LateReverb:
             return None
         self._portal_tables()
         c = self.r.coupling
-        mine = np.flatnonzero(self._probe_room == room)
+        mine = self._probes_of(room)
         if len(mine) == 0:
             return None
         xy = lis.position[:2]
@@ -493,9 +496,18 @@ class LateReverb:
         res = c.graph.path(src, xy)
         pt = res.last if res is not None else src
         r = max(float(np.hypot(*(pt - xy))), 0.5)
-        D = c.A[lr, 5] + c.coupling()[lr, :, 5].sum()
-        x = D / (4 * np.pi * r * r)
+        key = (c, c.scene.dynamic_version, lr)  # the doors and the listener's room decide D, not a step
+        if self._portal_D[0] != key:
+            self._portal_D = (key, float(c.A[lr, 5] + c.coupling()[lr, :, 5].sum()))
+        x = self._portal_D[1] / (4 * np.pi * r * r)
         return (float(pt[0]), float(pt[1])), x / (1 + x)
+
+    def _probes_of(self, room: int) -> np.ndarray:
+        """The indices of room ``room``'s probes (found once per room)."""
+        mine = self._room_probes.get(room)
+        if mine is None:
+            mine = self._room_probes[room] = np.flatnonzero(self._probe_room == room)
+        return mine
 
     def _modal_mix(self, st, lis, w, split, lr):
         """Tail weights (own, slow) over ``self.tail_rt`` and per-group per-band amplitudes (own, slow) (G, 9)."""
@@ -504,28 +516,12 @@ class LateReverb:
 
         def blend(room, rt_now, weights, single=False):
             """Amplitude weights over the tails for ``room``'s probes (energy ``weights``), blended between doors
-            open and shut so that the mid-band RT is ``rt_now``; and the blend's energy per band re the tails'
-            normalisation (each tail carries rt_b / rt_mid of a flat one). ``single``: one tail only (the nearest
-            probe's, doors open or shut, whichever decays nearer ``rt_now``): a neighbour's tail costs one
-            convolution."""
-            mine = np.flatnonzero(self._probe_room == room)
-            if len(mine) == 0:
-                mine = np.array([int(np.argmax(weights))])
-            if single:
-                mine = mine[[int(np.argmax(weights[mine]))]]
-            p = weights[mine] if weights[mine].sum() > 0 else np.ones(len(mine))
-            p = p / p.sum()
-            shut = self._shut[mine]
-            o, s_ = rt[mine].T @ p, rt[shut].T @ p  # (9,) room-mean open and shut RTs
-            o_mid, s_mid = o[MID].mean(), s_[MID].mean()
-            span = s_mid - o_mid  # a room without openings: no shut-door tail of its own
-            beta = float(np.clip((rt_now[MID].mean() - o_mid) / span, 0.0, 1.0)) if span > 0.01 * o_mid else 0.0
-            if single:
-                beta = float(beta > 0.5)
-            out = np.zeros(len(rt))
-            out[mine] = np.sqrt(p * (1 - beta))
-            out[shut] += np.sqrt(p * beta)
-            e = (1 - beta) * o / o_mid + beta * s_ / s_mid
+            open and shut so that the mid-band RT is ``rt_now``, and the blend's energy per band
+            (:func:`tail_blend`)."""
+            mine = self._probes_of(room)
+            out, e = np.empty(len(rt)), np.empty(len(BANDS))
+            tail_blend(rt, mine, self._shut, np.asarray(weights, float), float(np.mean(rt_now[MID])), single,
+                       MID.start, MID.stop, out, e)
             return out, e
 
         d2 = np.sum((self.r._probe_pos - lis.position) ** 2, axis=1)
@@ -548,7 +544,7 @@ class LateReverb:
                 continue
             f_k = split["modes_share"][k][:, lr]
             own_e = own_e - E * f_k
-            mine = np.flatnonzero(self._probe_room == room)
+            mine = self._probes_of(room)
             key = (split["gen"], lr, k, int(mine[np.argmax(near[mine])]))
             if t.key != key:  # the doors, the listener's room or the nearest probe changed, not a step
                 t.w, e_k = blend(room, split["modes_rt"][k], near, single=True)

@@ -4,6 +4,8 @@ loop, the sends to the reverb and their build-up from other rooms, the partition
 steps, the coupled rooms' groups and the neighbouring room's per-ear curve."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -361,3 +363,47 @@ def long_take(x, col, start, live, live_col):
         for t in range(B):
             col[g, start + t] = x[g, t]
         live_col[g] = live_col[g] or live[g]
+
+
+@njit(**_opts)
+def tail_blend(rt, mine, shut, weights, rt_now_mid, single, m0, m1, out, e):
+    """A room's tails for the late re-mix: amplitude weights ``out`` (T,) over the tails ``rt`` (T, 9) (each probe's
+    baked one, rows ``mine``, and its doors-shut one, rows ``shut[mine]``) for energies ``weights`` (P,) over the
+    probes, blended between doors open and shut so that the mid-band (bands m0 to m1 - 1) RT is ``rt_now_mid``; ``e`` (9,)
+    the blend's energy per band re the tails' normalisation (each tail carries rt_b / rt_mid of a flat one).
+    ``mine`` empty: the probe of most energy instead. ``single``: the room's probe of most energy only, doors open
+    or shut, whichever decays nearer (a neighbour's tail costs one convolution). Returns the doors-shut share."""
+    only, best = -1, -1.0  # the one probe taken (empty room or single), else -1: all of mine
+    if len(mine) == 0:
+        for i in range(len(weights)):
+            if weights[i] > best:
+                only, best = i, weights[i]
+    elif single:
+        for i in mine:
+            if weights[i] > best:
+                only, best = i, weights[i]
+    n = len(mine) if only < 0 else 1
+    tot = 0.0
+    for j in range(n):
+        tot += weights[mine[j] if only < 0 else only]
+    o_mid, s_mid = 0.0, 0.0
+    for j in range(n):
+        i = mine[j] if only < 0 else only
+        p = weights[i] / tot if tot > 0 else 1.0 / n
+        for b in range(m0, m1):
+            o_mid += p * rt[i, b] / (m1 - m0)
+            s_mid += p * rt[shut[i], b] / (m1 - m0)
+    span = s_mid - o_mid  # a room without openings: no shut-door tail of its own
+    beta = min(max((rt_now_mid - o_mid) / span, 0.0), 1.0) if span > 0.01 * o_mid else 0.0
+    if single:
+        beta = 1.0 if beta > 0.5 else 0.0
+    out[:] = 0.0
+    e[:] = 0.0
+    for j in range(n):
+        i = mine[j] if only < 0 else only
+        p = weights[i] / tot if tot > 0 else 1.0 / n
+        out[i] = math.sqrt(p * (1 - beta))
+        out[shut[i]] += math.sqrt(p * beta)
+        for b in range(len(e)):
+            e[b] += p * ((1 - beta) * rt[i, b] / o_mid + beta * rt[shut[i], b] / s_mid)
+    return beta
