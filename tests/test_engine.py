@@ -367,6 +367,60 @@ def test_bench_audio_times_blocks_without_the_collector_and_restores_it(monkeypa
     assert warmed == [0] and d["kernels"].startswith("warmed")  # as the live workers: before the first block
 
 
+def test_bench_audio_tells_a_stalled_block_from_a_costly_one(monkeypatch):
+    """A block over its duration is counted, and counted as the thread held off the CPU when its CPU time is under
+    half its wall time: the clocks are faked, one block stalled (2.5 blocks' wall, 0.2 on the CPU) and one costly
+    (1.5 blocks' wall, all of it on the CPU), the rest a tenth of a block."""
+    import time as real_time
+
+    from app.bench import engine
+
+    block_s = 256 / 48000
+    calls = {"n": 0}
+
+    class Clock:
+        wall = cpu = 0.0
+
+        @staticmethod
+        def perf_counter():
+            return Clock.wall
+
+        @staticmethod
+        def thread_time():
+            return Clock.cpu
+
+    render = engine._audio_scene
+
+    def scene(*a, **k):
+        r = render(*a, **k)
+        real_render = r.render_block
+
+        def render_block(*a2, **k2):
+            out = real_render(*a2, **k2)
+            calls["n"] += 1
+            wall, on_cpu = {60: (2.5, 0.2), 70: (1.5, 1.5)}.get(calls["n"], (0.1, 0.1))
+            Clock.wall += wall * block_s
+            Clock.cpu += on_cpu * block_s
+            return out
+
+        real_warm = r.warm_kernels
+
+        def warm_kernels():
+            real_warm()
+            calls["n"] = 0  # then 50 warm-up blocks, then the timed ones: calls 60 and 70 are timed
+
+        r.render_block, r.warm_kernels = render_block, warm_kernels
+        return r
+
+    monkeypatch.setattr(engine, "_audio_scene", scene)
+    monkeypatch.setattr(engine, "time", type("T", (), {"perf_counter": Clock.perf_counter,
+                                                      "thread_time": Clock.thread_time}))
+    d = engine.bench_audio(2, 0.5, "shoebox:6x4x3", reference_blocks=1)
+    assert real_time.perf_counter() > 0  # the real clock is untouched outside the bench module
+    assert d["blocks_over_real_time"] == {"count": 2, "thread_off_the_cpu": 1}
+    assert d["realtime_fraction"]["max"] == pytest.approx(2.5, rel=1e-6)
+
+
 def test_bench_audio_breakdown_accounts_for_every_subsystem_built():
     """``bench audio --breakdown``: one share per subsystem the scene built (a door's home: occlusion and paths
     too), each timed inside the block, so the shares and the rest add up to the mean block and the rest is not

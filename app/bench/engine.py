@@ -94,7 +94,9 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     ``tail_partitions``: the convolution tails' partitions (``RenderConfig.tail_partitions``); ``breakdown``: also
     time each subsystem's share of the timed blocks (``per_subsystem``: mean fraction of the block per subsystem,
     "other" the sources' reads, the smoothing, the limiter; one clock read either side of each subsystem's render,
-    so the blocks' own figures include that little more)."""
+    so the blocks' own figures include that little more). ``blocks_over_real_time``: the timed blocks longer than
+    their duration (a dropout in a live stream) and, of them, those whose thread ran for under half the block's wall
+    time: held off the CPU by the machine (preempted, a page fault served slowly), not slowed by the renderer."""
     from scipy.signal import oaconvolve
 
     from sonicverse_core.acoustics.renderer import RenderConfig
@@ -117,7 +119,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     block_s = block / sample_rate
     n_blocks = int(seconds / block_s)
     omega = walk / 0.3  # rad/s round the circle (0.5 at the default 0.15 m/s)
-    times = np.empty(n_blocks)
+    times, cpu = np.empty(n_blocks), np.empty(n_blocks)  # each block's wall time and its thread's CPU time
     paths, reverbs, sending = (np.zeros(n_blocks, int) for _ in range(3))
     from sonicverse_core.progress import progress
 
@@ -139,10 +141,12 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
             r.set_listener(lis, pos, 40.0 * t % 360.0)  # default) and a head turning at 40 deg/s
             if i == 0:
                 spent.clear()  # the warm-up blocks are not counted
+            c0 = time.thread_time()
             t0 = time.perf_counter()
             r.render_block()
             if i >= 0:
                 times[i] = time.perf_counter() - t0
+                cpu[i] = time.thread_time() - c0
                 paths[i], reverbs[i], sending[i] = (r.stats[k] for k in ("paths", "room_reverbs", "rooms_sending"))
     finally:
         if not frozen:  # a caller's own frozen objects stay frozen
@@ -176,6 +180,10 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                       "realtime_fraction": {"median": round(float(np.median(ref_frac)), 4),
                                             "p99": round(float(np.percentile(ref_frac, 99)), 4)}},
         "speedup_vs_reference": round(float(np.median(ref_frac) / np.median(frac)), 1),
+        # a block over its duration is a dropout in a live stream: was it the renderer's cost, or was the thread
+        # held off the CPU (preempted, a page fault served slowly by the machine)?
+        "blocks_over_real_time": {"count": int((frac > 1).sum()),
+                                  "thread_off_the_cpu": int(((frac > 1) & (cpu < 0.5 * times)).sum())},
         "occlusion": {k: r.stats[k] for k in ("occlusion_rays", "occlusion_skipped")},
         "per_listener": {"sources_heard_along_paths": {"mean": round(float(paths.mean()), 2), "max": int(paths.max())},
                          "room_reverbs_convolved": {"mean": round(float(reverbs.mean()), 2),
