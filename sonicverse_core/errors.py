@@ -131,6 +131,27 @@ def stop_behind(exc: BaseException) -> Interrupted | None:
     return None
 
 
+@contextmanager
+def stops_quiet_in_finalisers():
+    """While it runs, a stop raised where Python cannot pass it on (the handler ran inside a ``__del__``, a weakref
+    callback or a finaliser the collector called) prints nothing: Python would print "Exception ignored in ..." and
+    a traceback, where the command promises one line. The stop stays noted, and the next :func:`check_stopped`
+    raises it. Anything else raised there is printed as before."""
+    import sys
+
+    previous = sys.unraisablehook
+
+    def hook(unraisable):
+        if not (isinstance(unraisable.exc_value, Interrupted) and _STOPPED):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
 def check_stopped() -> None:
     """Raise :class:`Interrupted` if :func:`stop` was called in this process (the loops call it every frame)."""
     if _STOPPED:

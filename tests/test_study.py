@@ -237,6 +237,45 @@ def test_a_stop_inside_a_commit_waits_for_its_end_and_stays_noted():
     errors.check_stopped()  # nothing noted: no raise
 
 
+def test_a_stop_raised_in_a_finaliser_prints_nothing_and_stays_noted(monkeypatch):
+    """SIGTERM's handler may run inside a __del__ (or a finaliser the collector calls), where Python cannot pass the
+    raise on and hands it to sys.unraisablehook, whose default prints "Exception ignored" and a traceback: the CLI's
+    one-line promise broken. Under the CLI's hook the stop reaches no printer, stays noted and is raised at the next
+    check; other such errors go on to the hook as before, and the hook is put back after."""
+    import sys
+
+    from sonicverse_core import errors
+
+    printed = []  # what Python's default hook would have printed
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: printed.append(type(u.exc_value).__name__))
+
+    class Dies:
+        def __init__(self, raise_):
+            self.raise_ = raise_
+
+        def __del__(self):
+            self.raise_()
+
+    def fail():
+        raise KeyError("a bug in a finaliser")
+
+    def sigterm():
+        errors.stop("terminated (SIGTERM)")
+
+    try:
+        with errors.stops_quiet_in_finalisers():
+            Dies(sigterm)
+            assert printed == []
+            with pytest.raises(errors.Interrupted, match="SIGTERM"):
+                errors.check_stopped()
+            Dies(fail)
+            assert printed == ["KeyError"]
+        Dies(sigterm)  # the hook is gone: printed again
+        assert printed == ["KeyError", "Interrupted"]
+    finally:
+        errors._STOPPED.clear()
+
+
 def test_a_stop_that_python_wrapped_aborts_the_running_trial_and_points_to_resume(tmp_path, wrapped_stop,
                                                                                  monkeypatch):
     """CI saw SIGTERM land while a trial imported its task module: the raise came wrapped in a RuntimeError, the

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from app.cli import args as A
-from sonicverse_core.errors import SonicverseError, stop, stop_behind
+from sonicverse_core.errors import SonicverseError, stop, stop_behind, stops_quiet_in_finalisers
 
 
 def _json(obj) -> None:
@@ -195,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
                         format="sonicverse: %(name)s: %(message)s", stream=sys.stderr)
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if argv is None else None
     try:
-        code = int(args.func(args) or 0)
+        with stops_quiet_in_finalisers():  # the handler's raise inside a __del__: no "Exception ignored" traceback
+            code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
         return code
     except SonicverseError as exc:
