@@ -216,3 +216,22 @@ def test_a_closed_pipe_is_not_an_error():
     p = subprocess.run(f"'{sys.executable}' -m app.cli scene info builtin:apartment --json | head -c 10",
                        shell=True, capture_output=True, text=True, timeout=300)
     assert "Traceback" not in p.stderr and "Exception" not in p.stderr, p.stderr
+
+
+def test_a_crash_in_a_c_library_says_where_it_happened(tmp_path):
+    """A command that dies of a signal in native code (CI saw `bench camera` die of SIGSEGV once, with nothing on
+    stderr) prints Python's fault report: the signal and the stack of the command that was running."""
+    script = ("import ctypes, sys\n"
+              "import app.cli as cli\n"
+              "import argparse\n"
+              "def crash_in_native_code(args):\n"
+              "    ctypes.string_at(0)\n"
+              "p = argparse.ArgumentParser()\n"
+              "p.set_defaults(func=crash_in_native_code, verbose=0)\n"
+              "cli.build_parser = lambda: p\n"
+              "sys.argv = ['sonicverse']\n"
+              "sys.exit(cli.main())\n")
+    r = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == -11, (r.returncode, r.stderr)
+    assert "Fatal Python error: Segmentation fault" in r.stderr and "crash_in_native_code" in r.stderr
