@@ -194,8 +194,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(exc.code or 0)
     logging.basicConfig(level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
                         format="sonicverse: %(name)s: %(message)s", stream=sys.stderr)
-    if argv is None and not faulthandler.is_enabled():  # a crash in a C library (a driver, the GL stack) says where
-        faulthandler.enable()
+    if argv is None:  # a crash in a C library (a driver, the GL stack) says where, here and in the workers started
+        os.environ.setdefault("PYTHONFAULTHANDLER", "1")
+        if not faulthandler.is_enabled():
+            faulthandler.enable()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if argv is None else None
     try:
         with stops_quiet_in_finalisers():  # the handler's raise inside a __del__: no "Exception ignored" traceback
