@@ -433,4 +433,6 @@ def test_bench_audio_breakdown_accounts_for_every_subsystem_built():
     parts = [v for k, v in shares.items() if k not in ("other", "mean_block")]
     assert all(v > 0 for v in parts) and shares["other"] >= 0
     assert sum(parts) + shares["other"] == pytest.approx(shares["mean_block"], abs=2e-3)
+    mix = d["late_remix"]  # the listener walked 3 cm at 0.15 m/s: re-mixed at least twice, inside the late share
+    assert mix["count"] >= 2 and mix["us_each"] > 0 and 0 < mix["share"] < shares["late"]
     assert "per_subsystem" not in bench_audio(2, 0.1, "shoebox:6x4x3", reference_blocks=1)

@@ -94,7 +94,9 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     ``tail_partitions``: the convolution tails' partitions (``RenderConfig.tail_partitions``); ``breakdown``: also
     time each subsystem's share of the timed blocks (``per_subsystem``: mean fraction of the block per subsystem,
     "other" the sources' reads, the smoothing, the limiter; one clock read either side of each subsystem's render,
-    so the blocks' own figures include that little more). ``blocks_over_real_time``: how many timed blocks took
+    so the blocks' own figures include that little more; ``late_remix``: how often the coupled rooms' late reverb
+    mixed its tails again as the listener moved, its mean cost and its share of the block, inside the late
+    reverb's). ``blocks_over_real_time``: how many timed blocks took
     longer than their duration (a dropout in a live stream); of them, how many had their thread on the CPU for under
     half the block's wall time (held off it: preempted, or waiting in the kernel); and the first 20 blocks' indices.
     The walk is the same in every run, so a block that is late because of the renderer is late again at the same
@@ -117,6 +119,14 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                 _render(st, ls, lis_, out)
                 spent[_name] = spent.get(_name, 0.0) + time.perf_counter() - t0
             part.render = timed
+            if hasattr(part, "_modal_mix"):  # the late reverb's re-mix (coupled rooms), timed per call inside it
+                def remix(*a, _mix=part._modal_mix):
+                    t0 = time.perf_counter()
+                    res = _mix(*a)
+                    spent["late re-mix"] = spent.get("late re-mix", 0.0) + time.perf_counter() - t0
+                    spent["late re-mixes"] = spent.get("late re-mixes", 0) + 1
+                    return res
+                part._modal_mix = remix
     lis = r.listeners[0]
     start = lis.position.copy()
     block_s = block / sample_rate
@@ -195,8 +205,11 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                                                          "max": int(sending.max())}},
     }
     if breakdown:
+        mixes, mix_s = spent.pop("late re-mixes", 0), spent.pop("late re-mix", 0.0)  # inside the late share
         shares = {k: v / n_blocks / block_s for k, v in spent.items()}
         res["per_subsystem"] = {**{k: round(v, 4) for k, v in sorted(shares.items(), key=lambda kv: -kv[1])},
                                 "other": round(float(frac.mean()) - sum(shares.values()), 4),
                                 "mean_block": round(float(frac.mean()), 4)}
+        res["late_remix"] = {"count": int(mixes), "us_each": round(1e6 * mix_s / mixes, 1) if mixes else None,
+                             "share": round(mix_s / n_blocks / block_s, 4)}
     return res
