@@ -96,9 +96,9 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     "other" the sources' reads, the smoothing, the limiter; one clock read either side of each subsystem's render,
     so the blocks' own figures include that little more; ``late_remix``: how often the coupled rooms' late reverb
     mixed its tails again as the listener moved, its mean cost and its share of the block, inside the late
-    reverb's). ``blocks_over_real_time``: how many timed blocks took
-    longer than their duration (a dropout in a live stream); of them, how many had their thread on the CPU for under
-    half the block's wall time (held off it: preempted, or waiting in the kernel); and the first 20 blocks' indices.
+    reverb's). ``blocks_over_real_time``: how many timed blocks took longer than their duration (a dropout in a live
+    stream); of them, how many had their thread on the CPU for under half the block's wall time (held off it:
+    preempted, or waiting in the kernel); and the first 20 blocks' indices.
     The walk is the same in every run, so a block that is late because of the renderer is late again at the same
     index in a re-run, and a stall of the machine is not (a virtual CPU that its host stops may still count as the
     thread's CPU time)."""

@@ -369,8 +369,8 @@ def long_take(x, col, start, live, live_col):
 def tail_blend(rt, mine, shut, weights, rt_now_mid, single, m0, m1, out, e):
     """A room's tails for the late re-mix: amplitude weights ``out`` (T,) over the tails ``rt`` (T, 9) (each probe's
     baked one, rows ``mine``, and its doors-shut one, rows ``shut[mine]``) for energies ``weights`` (P,) over the
-    probes, blended between doors open and shut so that the mid-band (bands m0 to m1 - 1) RT is ``rt_now_mid``; ``e`` (9,)
-    the blend's energy per band re the tails' normalisation (each tail carries rt_b / rt_mid of a flat one).
+    probes, blended between doors open and shut so that the mid-band (bands m0 to m1 - 1) RT is ``rt_now_mid``;
+    ``e`` (9,) the blend's energy per band re the tails' normalisation (each tail carries rt_b / rt_mid of a flat one).
     ``mine`` empty: the probe of most energy instead. ``single``: the room's probe of most energy only, doors open
     or shut, whichever decays nearer (a neighbour's tail costs one convolution). Returns the doors-shut share."""
     only, best = -1, -1.0  # the one probe taken (empty room or single), else -1: all of mine
