@@ -39,15 +39,16 @@ def rng():
 
 @pytest.fixture
 def wrapped_stop():
-    """Fires a SIGTERM's raise (errors.stop) the way Python 3.11 hands it on when it lands while a class body binds
-    its fields (a task module being imported): inside a RuntimeError. The noted stop is cleared afterwards."""
+    """Fires a SIGTERM's raise (errors.stop; or ``raise_()`` when given, Ctrl-C's say) the way Python 3.11 hands it
+    on when it lands while a class body binds its fields (a task module being imported): inside a RuntimeError. The
+    noted stop is cleared afterwards."""
     from sonicverse_core import errors
 
-    class Field:
-        def __set_name__(self, owner, name):
-            errors.stop("terminated (SIGTERM)")
+    def fire(raise_=lambda: errors.stop("terminated (SIGTERM)")):
+        class Field:
+            def __set_name__(self, owner, name):
+                raise_()
 
-    def fire():
         type("Episode", (), {"extra": Field()})
 
     yield fire

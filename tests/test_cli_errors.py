@@ -1,5 +1,6 @@
 """The hostile-user sweep: bad invocations of every command end in one line `sonicverse: error: ...` and exit code 2,
 never a traceback, and before any long work (output paths and formats are checked when the line is parsed)."""
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -167,12 +168,11 @@ def test_a_stop_that_python_wrapped_is_still_one_line_and_exit_2(wrapped_stop, m
     assert capsys.readouterr().err == "sonicverse: error: terminated (SIGTERM)\n"
 
 
-def test_ctrl_c_that_python_wrapped_is_still_one_line_and_exit_2(monkeypatch, capsys):
-    class Field:
-        def __set_name__(self, owner, name):
-            raise KeyboardInterrupt  # Ctrl-C landing while a class body binds its fields: a RuntimeError on 3.11
+def test_ctrl_c_that_python_wrapped_is_still_one_line_and_exit_2(wrapped_stop, monkeypatch, capsys):
+    def ctrl_c():
+        raise KeyboardInterrupt
 
-    _command_that_runs(lambda args: type("Episode", (), {"extra": Field()}), monkeypatch)
+    _command_that_runs(lambda args: wrapped_stop(ctrl_c), monkeypatch)
     assert main([]) == 2
     assert capsys.readouterr().err == "sonicverse: error: interrupted\n"
 
@@ -218,14 +218,14 @@ def test_a_closed_pipe_is_not_an_error():
     assert "Traceback" not in p.stderr and "Exception" not in p.stderr, p.stderr
 
 
-def test_a_crash_in_a_c_library_says_where_it_happened(tmp_path):
+def test_a_crash_in_a_c_library_says_where_it_happened():
     """A command that dies of a signal in native code (`bench camera` died of SIGSEGV once in `make test`, with
     nothing on stderr) prints Python's fault report: the signal and the stack of the command that was running; so
     does a Python process it starts (PYTHONFAULTHANDLER)."""
     script = ("import ctypes, sys\n"
               "import app.cli as cli\n"
               "import argparse\n"
-              "import os, subprocess\n"
+              "import subprocess\n"
               "def crash_in_native_code(args):\n"
               "    subprocess.run([sys.executable, '-c', 'import ctypes; ctypes.string_at(0)'])  # a worker's crash\n"
               "    ctypes.string_at(0)\n"
@@ -234,8 +234,6 @@ def test_a_crash_in_a_c_library_says_where_it_happened(tmp_path):
               "cli.build_parser = lambda: p\n"
               "sys.argv = ['sonicverse']\n"
               "sys.exit(cli.main())\n")
-    import os
-
     env = {k: v for k, v in os.environ.items() if k != "PYTHONFAULTHANDLER"}  # none but the CLI's own
     r = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[1], capture_output=True,
                        text=True, timeout=120, env=env)

@@ -628,52 +628,39 @@ def test_a_stopped_evaluation_keeps_its_episodes_and_resumes(tmp_path):
     assert r.returncode == 2 and "line 8 has fewer cells" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
-def test_a_stop_that_something_swallowed_still_ends_the_evaluation_at_the_next_step(tmp_path, monkeypatch):
-    """A SIGTERM's raise can land in code that catches every Exception (a damaged cache's fallback, a library): the
-    episode loop checks for a noted stop every step, so the run still ends, keeping the episodes that finished."""
+STOP_IN_AN_EPISODE = {
+    # a SIGTERM's raise that lands in code that catches every Exception (a damaged cache's fallback, a library): the
+    # episode loop checks for a noted stop every step
+    "swallowed": "            try:\n                errors.stop('terminated (SIGTERM)')\n"
+                 "            except Exception:\n                pass  # swallowed, as a broad except would\n",
+    # a SIGTERM that lands while a class body binds its fields (a module imported mid-episode) reaches the loop as a
+    # RuntimeError (Python 3.11): it is still the stop
+    "wrapped": "            type('Late', (), {'extra': Field()})\n",
+}
+
+
+@pytest.mark.parametrize("how", sorted(STOP_IN_AN_EPISODE))
+def test_a_stop_in_an_episode_ends_the_evaluation_keeping_the_finished_episodes(tmp_path, monkeypatch, how):
+    """A stop in the second episode, swallowed or wrapped on its way to the episode loop, still ends the run with
+    the stop's own message, and the CSV keeps the episode that finished."""
     from app.tasks.evaluate import run_eval
     from sonicverse_core import errors
 
-    (tmp_path / "swallow_policy.py").write_text(
-        "import numpy as np\n\nfrom sonicverse_core import errors\n\nEPISODES = []\n\n\nclass Policy:\n"
-        "    def __init__(self, rng):\n        self.t = 0\n\n"
-        "    def reset(self, env, obs, info):\n        EPISODES.append(0)\n        self.t = 0\n\n"
-        "    def act(self, obs, info):\n        self.t += 1\n"
-        "        if len(EPISODES) == 2 and self.t == 3:\n            try:\n"
-        "                errors.stop('terminated (SIGTERM)')\n            except Exception:\n"
-        "                pass  # swallowed, as a broad except would\n"
-        "        return np.array([0.5, 0.0], np.float32)\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    out = tmp_path / "x.csv"
-    try:
-        with pytest.raises(errors.Interrupted, match="keeps its 1 finished episode"):
-            run_eval("AudioGoal", "swallow_policy:Policy", 3, seed=0, csv_path=out, env_kwargs={"max_steps": 10})
-    finally:
-        errors._STOPPED.clear()  # this process goes on: forget the stop noted for the test
-    assert len(out.read_text().splitlines()) == 2
-
-
-def test_a_stop_that_python_wrapped_still_ends_the_evaluation_keeping_the_finished_episodes(tmp_path, monkeypatch):
-    """A SIGTERM landing while a class body binds its fields (a module being imported mid-episode) reaches the loop
-    as a RuntimeError: it is still the stop, and the CSV keeps the episode that finished."""
-    from app.tasks.evaluate import run_eval
-    from sonicverse_core import errors
-
-    (tmp_path / "late_import_policy.py").write_text(
+    (tmp_path / f"{how}_policy.py").write_text(
         "import numpy as np\n\nfrom sonicverse_core import errors\n\nEPISODES = []\n\n\nclass Field:\n"
         "    def __set_name__(self, owner, name):\n        errors.stop('terminated (SIGTERM)')\n\n\n"
         "class Policy:\n    def __init__(self, rng):\n        self.t = 0\n\n"
         "    def reset(self, env, obs, info):\n        EPISODES.append(0)\n        self.t = 0\n\n"
         "    def act(self, obs, info):\n        self.t += 1\n"
-        "        if len(EPISODES) == 2 and self.t == 3:\n            type('Late', (), {'extra': Field()})\n"
+        "        if len(EPISODES) == 2 and self.t == 3:\n" + STOP_IN_AN_EPISODE[how] +
         "        return np.array([0.5, 0.0], np.float32)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     out = tmp_path / "x.csv"
     try:
         with pytest.raises(errors.Interrupted, match="^terminated .SIGTERM.; .* keeps its 1 finished episode"):
-            run_eval("AudioGoal", "late_import_policy:Policy", 3, seed=0, csv_path=out, env_kwargs={"max_steps": 10})
+            run_eval("AudioGoal", f"{how}_policy:Policy", 3, seed=0, csv_path=out, env_kwargs={"max_steps": 10})
     finally:
-        errors._STOPPED.clear()
+        errors._STOPPED.clear()  # this process goes on: forget the stop noted for the test
     assert len(out.read_text().splitlines()) == 2
 
 
