@@ -210,6 +210,43 @@ def test_lit_path_lamps_follow_the_viewer():
     assert any(np.allclose(p, far) for p in placed)
 
 
+def test_a_closed_lit_camera_collected_in_another_ones_frame_leaves_it_drawing():
+    """The garbage collector takes a closed camera's renderer whenever it runs, often inside another camera's
+    frame. pyrender's second clean-up of that renderer (its ``__del__``) deleted framebuffer 1 of the context then
+    current, a lit camera's shadow framebuffer: its next frame failed (glBindFramebuffer: invalid operation) or
+    crashed in the shadow pass. Here the collection is made to happen inside the second camera's frame."""
+    import gc
+
+    from sonicverse_core.sensors.camera import RGBDCamera
+
+    sc = load_scene("builtin:apartment")
+    c = next(r for r in sc.rooms if r.type == "living room").footprint.mean(0)
+    first = RGBDCamera(sc, 32, 32, look="pbr")
+    first.render(c[0], c[1], 1.5, 0.0)
+    held = [first.renderer._renderer]  # the only reference left once it is closed
+    first.close()
+    second = RGBDCamera(sc, 32, 32, look="pbr")
+    try:
+        before = second.render(c[0], c[1], 1.5, 0.0)
+        inner = second.renderer._renderer
+        assert inner._shadow_fb is not None  # drawn with shadows: the framebuffer the old clean-up hit
+        update = inner._update_context
+
+        def update_then_collect(*a, **kw):  # the collector runs in this frame, with this context current
+            update(*a, **kw)
+            held.clear()
+            gc.collect()
+
+        inner._update_context = update_then_collect
+        second.render(c[0], c[1], 1.5, 0.0)
+        del inner._update_context
+        assert not held
+        after = second.render(c[0], c[1], 1.5, 0.0)
+    finally:
+        second.close()
+    assert np.array_equal(after["rgb"], before["rgb"]) and np.array_equal(after["depth"], before["depth"])
+
+
 def test_no_two_parts_of_different_colours_fight_in_depth():
     """Faces of two parts of an object that lie in the same plane, face the same way and overlap would flicker (the
     depth test cannot order them); parts of one colour may (they draw the same), and downward faces are unseen."""

@@ -648,13 +648,34 @@ class RGBDCamera:
             self.ids_renderer = None
 
 
+def _delete_gl_objects_once(self) -> None:
+    """pyrender 0.1.45's ``Renderer.delete`` frees the GL objects and forgets them, but for the shadow framebuffer,
+    whose id it keeps; and ``Renderer.__del__`` calls ``delete`` again. When the garbage collector takes a renderer
+    that was deleted (a closed camera's, in a reference cycle), that second call deleted framebuffer 1 in whichever
+    context was current: inside another lit camera's frame, its shadow framebuffer, which was bound, so the next
+    frame failed (glBindFramebuffer: invalid operation) or the shadow pass drew with no framebuffer bound and Mesa's
+    llvmpipe crashed (SIGSEGV in glDrawElementsInstanced). Here the first call frees everything and later ones do
+    nothing."""
+    if self.__dict__.get("_gl_deleted"):
+        return
+    self._gl_deleted = True
+    import pyrender.renderer as _pr
+
+    _pr.Renderer.delete(self)
+    self._shadow_fb = None
+
+
 def keep_display_on_delete(renderer) -> None:
     """pyrender's EGL platform terminates the EGL display when its context is deleted, and the display is shared by
     every context of the process. That also happens when the garbage collector takes a renderer nobody closed (an
     env dropped without ``close()``, as in a notebook): every other env's camera then failed on its next frame
-    (glBindFramebuffer: invalid operation). Here deleting a renderer's context destroys that context only."""
+    (glBindFramebuffer: invalid operation). Here deleting a renderer's context destroys that context only, and its
+    GL objects are freed once (:func:`_delete_gl_objects_once`)."""
     import types
 
+    inner = getattr(renderer, "_renderer", None)
+    if inner is not None and "delete" not in inner.__dict__:
+        inner.delete = types.MethodType(_delete_gl_objects_once, inner)
     platform = getattr(renderer, "_platform", None)
     if platform is None or not hasattr(platform, "_egl_display"):  # not EGL
         return
@@ -678,13 +699,14 @@ def release_offscreen(renderer) -> None:
     initialised (:func:`keep_display_on_delete`: pyrender's ``delete()`` would terminate the display every context
     of the process shares, and its ``gc.collect()`` is not needed here)."""
     platform = getattr(renderer, "_platform", None)
-    if platform is None or not hasattr(platform, "_egl_display"):  # not EGL (or already released)
-        if platform is not None:
-            renderer.delete()
+    if platform is None:  # already released
+        return
+    keep_display_on_delete(renderer)  # a stock renderer too
+    if not hasattr(platform, "_egl_display"):  # not EGL
+        renderer.delete()
         return
     platform.make_current()
     renderer._renderer.delete()
-    keep_display_on_delete(renderer)  # a stock renderer too
     platform.delete_context()
     renderer._renderer = None
     renderer._platform = None
