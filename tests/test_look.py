@@ -213,8 +213,8 @@ def test_lit_path_lamps_follow_the_viewer():
 def test_a_closed_lit_camera_collected_in_another_ones_frame_leaves_it_drawing():
     """The garbage collector takes a closed camera's renderer whenever it runs, often inside another camera's
     frame. pyrender's second clean-up of that renderer (its ``__del__``) deleted framebuffer 1 of the context then
-    current, a lit camera's shadow framebuffer: its next frame failed (glBindFramebuffer: invalid operation) or
-    crashed in the shadow pass. Here the collection is made to happen inside the second camera's frame."""
+    current, a lit camera's shadow framebuffer: its next frame failed (glBindFramebuffer: invalid operation). Here
+    the collection is made to happen inside the second camera's frame."""
     import gc
 
     from sonicverse_core.sensors.camera import RGBDCamera

@@ -652,10 +652,9 @@ def _delete_gl_objects_once(self) -> None:
     """pyrender 0.1.45's ``Renderer.delete`` frees the GL objects and forgets them, but for the shadow framebuffer,
     whose id it keeps; and ``Renderer.__del__`` calls ``delete`` again. When the garbage collector takes a renderer
     that was deleted (a closed camera's, in a reference cycle), that second call deleted framebuffer 1 in whichever
-    context was current: inside another lit camera's frame, its shadow framebuffer, which was bound, so the next
-    frame failed (glBindFramebuffer: invalid operation) or the shadow pass drew with no framebuffer bound and Mesa's
-    llvmpipe crashed (SIGSEGV in glDrawElementsInstanced). Here the first call frees everything and later ones do
-    nothing."""
+    context was current: inside another lit camera's frame, that camera's shadow framebuffer, so its frames failed
+    (glBindFramebuffer: invalid operation; invalid framebuffer operation where it was bound at the time). Here the
+    first call frees everything and later ones do nothing."""
     if self.__dict__.get("_gl_deleted"):
         return
     self._gl_deleted = True
