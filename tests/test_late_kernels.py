@@ -87,26 +87,28 @@ def test_late_send():
 
 
 def test_buildup_filter():
-    """Twin over six blocks with room for two after the history: the last L samples move to the front twice."""
+    """Twin over six blocks through a ring of L + B samples that is not a multiple of B (blocks and taps wrap
+    mid-run); each group its own delays, the longest L."""
     G, B, L = 4, 32, 50
-    delay = np.array([0, 7, 20, 49])
+    delay = np.array([[0, 7, 20, 50], [0, 7, 20, 49], [1, 2, 3, 4], [5, 0, 50, 30]])
     gain = np.array([0.6, 0.5, 0.4, 0.3], np.float32)
     x = RNG.normal(size=(G, 6 * B)).astype(np.float32)
-    hist = np.zeros((G, L + 2 * B), np.float32)
-    out, pos, moved = [], L, 0
+    hist = np.zeros((G, L + B), np.float32)
+    out, pos, wrapped = [], 0, 0
     for b in range(6):
         s = x[:, b * B:(b + 1) * B].copy()
-        moved += pos + B > hist.shape[1]  # this block does not fit after the history
-        pos = LK.buildup_filter(s, hist, L, pos, delay, gain, 2, np.empty(B))
+        wrapped += 0 < hist.shape[1] - pos < B  # this block wraps mid-run
+        pos = LK.buildup_filter(s, hist, pos, delay, gain, 2, np.empty(B))
         out.append(s)
-        stream = np.c_[np.zeros((G, L), np.float32), x]  # the history ends where pos says
-        np.testing.assert_array_equal(hist[:, pos - L - B:pos], stream[:, b * B:L + (b + 1) * B])
+        assert pos == (b + 1) * B % (L + B)
+        stream = np.c_[np.zeros((G, L), np.float32), x]  # the ring holds the last L + B samples, ending before pos
+        np.testing.assert_array_equal(np.roll(hist, -pos, axis=1), stream[:, b * B:L + (b + 1) * B])
     out = np.concatenate(out, axis=1)
     want = x.astype(np.float64).copy()
     for g in (1, 3):  # groups 0 and 2 (the listener's room) pass untouched
-        want[g] = sum(a * np.r_[np.zeros(d), x[g, :6 * B - d]] for a, d in zip(gain, delay))
+        want[g] = sum(a * np.r_[np.zeros(d), x[g, :6 * B - d]] for a, d in zip(gain, delay[g]))
     np.testing.assert_allclose(out, want, atol=1e-5)
-    assert moved == 2
+    assert wrapped >= 2
 
 
 def test_fdl_mac():

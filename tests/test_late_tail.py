@@ -160,11 +160,16 @@ def test_the_tail_falls_first_at_the_probes_early_decay_time(factor):
 
 
 def test_the_late_part_of_a_sound_from_another_room_builds_up_and_keeps_its_level():
-    """RenderConfig.tail_buildup (default 20 ms): a source in the next room, heard through the open doorway, fills
-    the listener's room as 1 - e^(-t / 20 ms): over the first 20 ms after the path's arrival its late part holds
-    several dB less than with the build-up off, the same energy in all (the taps' shares sum to 1: the rooms'
-    energy balance holds) and from 150 ms on under 1 dB more (the energy that came later); a source in the
-    listener's own room is untouched. `bench fidelity` measures what it does against the peer."""
+    """A source in the next room, heard through the open doorway, fills the listener's room in two parts:
+    ``RenderConfig.tail_beam`` (0.7) of its late energy as 1 - e^(-t / 20 ms) (``tail_buildup``: the doorway's beam),
+    the rest at the two rooms' own rate, 2 V / (c S) for these two like rooms joined by a doorway of area S. Over the
+    first 20 ms after the path's arrival its late part holds several dB less than with the build-up off, the same
+    energy in all (the taps' shares sum to 1: the rooms' energy balance holds), later by the build-up's mean delay
+    (the energy centroid of a sum of delayed copies moves by their energy-weighted delay: 0.843 tau for each part's
+    exponential cut at 3 tau); with the beam alone (``tail_beam`` 1, before session 61) from 150 ms on it is under
+    1 dB above the build-up off; a source in the listener's own room is untouched. `bench fidelity` measures what it
+    does against the peer."""
+    from sonicverse_core.acoustics.coupling import OPENING_HEIGHT
     from sonicverse_core.acoustics.paths import path_graph
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.errors import ConfigError
@@ -175,29 +180,37 @@ def test_the_late_part_of_a_sound_from_another_room_builds_up_and_keeps_its_leve
     probes = scene_probes(scene, BakeConfig())
     lis = np.array([6.0, 0.6, 1.5])
 
-    def late(src, tau):
+    def late(src, tau, beam=0.7):
         parts = []
         for on in (True, False):
-            r = AcousticRenderer(scene, RenderConfig(sample_rate=fs, output="mono", late_reverb=on, tail_buildup=tau),
-                                 probes=probes)
+            r = AcousticRenderer(scene, RenderConfig(sample_rate=fs, output="mono", late_reverb=on, tail_buildup=tau,
+                                                     tail_beam=beam), probes=probes)
             x = np.zeros(fs, np.float32)
             x[0] = 1.0
             r.add_source(x, position=src, loop=False)
             r.add_listener(lis)
-            parts.append(r.render(1.0)[0].astype(np.float64).sum(0))
+            parts.append(r.render(3.0)[0].astype(np.float64).sum(0))
         return parts[0] - parts[1]
 
     src = np.array([2.0, 2.6, 1.2])  # the west room, out of sight
     t0 = int(round(np.hypot(path_graph(scene).path(src[:2], lis[:2]).length, 0.3) / 343.0 * fs))
-    on, off = late(src, 0.02), late(src, 0.0)
+    on, off, beam = late(src, 0.02), late(src, 0.0), late(src, 0.02, beam=1.0)
     e = lambda h, a, b: float(np.sum(h[t0 + int(a * fs): t0 + int(b * fs)] ** 2))  # noqa: E731
+    centroid = lambda h: float(np.sum(np.arange(len(h)) * h ** 2) / np.sum(h ** 2)) / fs  # noqa: E731
     assert 10 * np.log10(e(off, 0, 0.02) / e(on, 0, 0.02)) > 3.0
-    assert abs(10 * np.log10(e(on, -0.01, 0.9) / e(off, -0.01, 0.9))) < 0.3
-    assert 0.0 < 10 * np.log10(e(on, 0.15, 0.6) / e(off, 0.15, 0.6)) < 1.0
+    for h in (on, beam):
+        assert abs(10 * np.log10(np.sum(h ** 2) / np.sum(off ** 2))) < 0.3
+    slow = 2 * scene.rooms[0].volume / (343.0 * scene.doors[0].width * OPENING_HEIGHT)  # 0.15 s
+    assert centroid(on) - centroid(off) == pytest.approx(0.843 * (0.7 * 0.02 + 0.3 * slow), rel=0.1)
+    assert centroid(beam) - centroid(off) == pytest.approx(0.843 * 0.02, rel=0.1)
+    assert 0.0 < 10 * np.log10(e(beam, 0.15, 0.6) / e(off, 0.15, 0.6)) < 1.0
     same = np.array([6.5, 3.0, 1.2])  # the listener's own room
     np.testing.assert_allclose(late(same, 0.02), late(same, 0.0), atol=1e-7)
     with pytest.raises(ConfigError, match="tail_buildup"):
         RenderConfig(tail_buildup=-0.01)
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="tail_beam"):
+            RenderConfig(tail_beam=bad)
 
 
 def test_the_tails_band_shapes_are_applied_after_an_unshaped_block():

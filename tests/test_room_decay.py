@@ -167,6 +167,37 @@ def test_closing_the_door_separates_the_modes():
     assert drop > 15, drop
 
 
+def test_how_fast_a_room_fills_from_another_is_the_coupled_rooms_own_rate():
+    """late_split's buildup_tau: two like rooms joined by a doorway of area S fill each other in 2 V / (c S) (the
+    two modes of their energy balance differ by c S / 2V); a dead room beside a live one fills in about its own
+    energy time constant (RT60 / 13.8); with the door shut the rooms, joined by the wall alone, fill far slower;
+    rooms joined only through a third fill in the sum of the two steps."""
+    from sonicverse_core.acoustics.coupling import OPENING_HEIGHT
+
+    scene = load_scene("builtin:two-rooms?door=open")
+    c = RoomCoupling(scene, path_graph(scene), scene_probes(scene, BakeConfig(per_room=True)))
+    tau = c.late_split()["buildup_tau"]
+    S = scene.doors[0].width * OPENING_HEIGHT
+    assert tau[0, 1] == pytest.approx(2 * c.V[0] / (343.0 * S), rel=0.02)
+    assert tau[1, 0] == tau[0, 1] and tau[0, 0] == 0.0
+    scene.set_door(scene.doors[0].name, 0.0)
+    c.graph.refresh()
+    assert c.late_split()["buildup_tau"][0, 1] > 5 * tau[0, 1]
+
+    dead = load_scene(DEAD)
+    c = RoomCoupling(dead, path_graph(dead), scene_probes(dead, BakeConfig(per_room=True)))
+    split = c.late_split()
+    w = [r.name for r in c.rooms].index("west")
+    own = float(np.mean(split["own_rt"][w, 4:7])) / 13.8155
+    assert split["buildup_tau"][1 - w, w] == pytest.approx(own, rel=0.25)
+
+    flat = load_scene("builtin:apartment")
+    c = RoomCoupling(flat, path_graph(flat), scene_probes(flat, BakeConfig(per_room=True)))
+    tau = c.late_split()["buildup_tau"]
+    k, b, lv = ([r.name for r in c.rooms].index(n) for n in ("kitchen", "bedroom", "living room"))
+    assert tau[k, b] == pytest.approx(tau[k, lv] + tau[lv, b])  # through the living room: no door between them
+
+
 def test_per_room_bakes_are_the_default_cached_apart_from_whole_space_ones():
     """per_room is the default and part of the bake's cache key (the two bakes differ), and without it the renderer
     takes the whole-space path (no slow-mode reverb)."""

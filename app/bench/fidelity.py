@@ -22,6 +22,7 @@ from sonicverse_core.acoustics.config import RenderConfig as _RC
 
 BANDS = (250, 500, 1000, 2000, 4000)
 BUILDUP = _RC.tail_buildup  # the renderer's default: the bench's default model is the renderer's
+BEAM = _RC.tail_beam
 NEIGHBOURS = _RC.neighbour_tails
 FS = 16_000
 C = 343.0
@@ -165,7 +166,7 @@ def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
           er_order: int = 1, per_room: bool = True, er_images: str = "room",
           realisation: int = 0, tail_edt: bool = True,
           tail_buildup: float = BUILDUP, neighbour_tails: int = NEIGHBOURS,
-          reverb: str = "convolution") -> tuple[np.ndarray, float, float]:
+          reverb: str = "convolution", tail_beam: float = BEAM) -> tuple[np.ndarray, float, float]:
     """Our mono impulse response; ``realisation`` > 0: another bake seed and another tail noise (0: the defaults)."""
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
@@ -178,7 +179,7 @@ def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
     r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order,
                                              er_images=er_images, tail_seed=realisation, tail_edt=tail_edt,
                                              tail_buildup=tail_buildup, neighbour_tails=neighbour_tails,
-                                             reverb=reverb),
+                                             reverb=reverb, tail_beam=tail_beam),
                           probes=probes)
     t_bake = time.perf_counter() - t0
     x = np.zeros(int(seconds * FS), np.float32)
@@ -316,7 +317,7 @@ def _errors(ours: dict, peer: dict, diffuse: bool) -> dict:
 
 
 def _sealed(scattering: str = "stochastic", per_room: bool = True, tail_edt: bool = True,
-            tail_buildup: float = BUILDUP, reverb: str = "convolution") -> dict:
+            tail_buildup: float = BUILDUP, reverb: str = "convolution", tail_beam: float = BEAM) -> dict:
     """Sealed rooms: our level difference between the rooms per band vs D = TL - 10 log10(S / A2)."""
     from sonicverse_core.acoustics.coupling import RoomCoupling
     from sonicverse_core.acoustics.paths import path_graph
@@ -330,12 +331,12 @@ def _sealed(scattering: str = "stochastic", per_room: bool = True, tail_edt: boo
     t = 0.0
     for lis in ((1.0, 1.0, 1.5), (3.0, 3.2, 1.5)):
         h, tb, tr = _ours(spec, src, lis, 3.0, scattering, per_room=per_room, tail_edt=tail_edt,
-                          tail_buildup=tail_buildup, reverb=reverb)
+                          tail_buildup=tail_buildup, reverb=reverb, tail_beam=tail_beam)
         G1.append(room_parameters(h)["G"])
         t += tr
     for lis in ((5.5, 1.0, 1.5), (7.0, 3.2, 1.5)):
         h, tb, tr = _ours(spec, src, lis, 3.0, scattering, per_room=per_room, tail_edt=tail_edt,
-                          tail_buildup=tail_buildup, reverb=reverb)
+                          tail_buildup=tail_buildup, reverb=reverb, tail_beam=tail_beam)
         G2.append(room_parameters(h)["G"])
         t += tr
     mean = lambda G: 10 * np.log10(np.mean(10 ** (np.array(G) / 10), axis=0))  # noqa: E731
@@ -356,12 +357,13 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
                    scattering: str = "stochastic", er_order: int = 1, per_room: bool = True,
                    er_images: str = "room", realisations: int = 1, tail_edt: bool = True,
                    tail_buildup: float = BUILDUP, neighbour_tails: int = NEIGHBOURS, case: str | None = None,
-                   reverb: str = "convolution") -> dict:
+                   reverb: str = "convolution", tail_beam: float = BEAM) -> dict:
     """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");
     ``er_order``, ``er_images``: our image sources' order and geometry (``RenderConfig``); ``per_room``: probes baked per room, the
     rooms' decays coupled (``BakeConfig.per_room``); ``tail_edt``: our tails fall first at the bake's EDT
     (``RenderConfig.tail_edt``); ``tail_buildup``: the late part of a source in another room builds up with this
-    time constant (s; ``RenderConfig.tail_buildup``); ``neighbour_tails``: coupled rooms heard apart besides the
+    time constant (s; ``RenderConfig.tail_buildup``), its share ``tail_beam`` (``RenderConfig.tail_beam``; the rest
+    at the coupled rooms' own rate); ``neighbour_tails``: coupled rooms heard apart besides the
     slowest mode's (``RenderConfig.neighbour_tails``); ``reverb``: our late reverb, the convolution or the cheaper
     FDN (``RenderConfig.reverb``); ``case``: only the cases whose name contains it (and no
     sealed rooms unless it names them). ``realisations`` N > 1: both models run N times (the peer with
@@ -378,7 +380,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     from sonicverse_core.acoustics.renderer import RenderConfig
 
     BakeConfig(scattering=scattering), RenderConfig(er_order=er_order, er_images=er_images,
-                                                    tail_buildup=tail_buildup,
+                                                    tail_buildup=tail_buildup, tail_beam=tail_beam,
                                                     neighbour_tails=neighbour_tails,
                                                     reverb=reverb)  # checked before anything runs
 
@@ -401,7 +403,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
             t_peer += (time.perf_counter() - t0) / realisations
             y, tb, tr = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images, realisation=k,
                               tail_edt=tail_edt, tail_buildup=tail_buildup, neighbour_tails=neighbour_tails,
-                              reverb=reverb)
+                              reverb=reverb, tail_beam=tail_beam)
             h.append(y)
             t_bake, t_render = t_bake + tb / realisations, t_render + tr / realisations
         t_dir = _onset(spec, src, lis)  # both from the shortest open path's time (the peer's filter: 40 samples on)
@@ -414,12 +416,14 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         if dims is not None:
             row["theory"] = _theory_shoebox(dims, walls, floor, ceiling, src, lis)
         cases.append(row)
-    sealed = _sealed(scattering, per_room, tail_edt, tail_buildup, reverb) if case is None or "sealed" in case.lower() else None
+    sealed = (_sealed(scattering, per_room, tail_edt, tail_buildup, reverb, tail_beam)
+              if case is None or "sealed" in case.lower() else None)
     met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
            f"{rays} rays, receiver radius 0.5 m, seed {seed})", "realisations": realisations, "sample_rate": FS, "scattering": scattering, "er_order": er_order,
            "er_images": er_images, "per_room": per_room, "tail_edt": tail_edt,
-           "tail_buildup": tail_buildup, "neighbour_tails": neighbour_tails, "reverb": reverb, "case": case,
+           "tail_buildup": tail_buildup, "tail_beam": tail_beam,
+           "neighbour_tails": neighbour_tails, "reverb": reverb, "case": case,
            "onset": f"the direct sound's time along the shortest open path (the peer's {PRA_DELAY} samples later)",
            "cases": cases,
            "sealed": sealed,

@@ -224,6 +224,9 @@ def add_audio_commands(sub, bench_sub) -> None:
     bf.add_argument("--tail-buildup", type=A.number(0.0, 0.2), default=RenderConfig.tail_buildup, metavar="S",
                     help="the late part of a source in another room builds up as 1 - e^(-t / S) (0: off; "
                     "default: %(default)s)")
+    bf.add_argument("--tail-beam", type=A.number(0.0, 1.0), default=RenderConfig.tail_beam, metavar="P",
+                    help="the share of that late part that builds up as 1 - e^(-t / S), the rest at the coupled "
+                    "rooms' own rate (1: all at S, the model before session 61; default: %(default)s)")
     bf.add_argument("--neighbour-tails", type=A.count(0, 4), default=RenderConfig.neighbour_tails, metavar="N",
                     help="coupled rooms heard apart besides the slowest mode's (default: %(default)s)")
     bf.add_argument("--reverb", choices=("convolution", "fdn"), default="convolution",
@@ -271,7 +274,7 @@ def cmd_bench_fidelity(a) -> int:
 
     print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
                                     a.er_images, a.realisations, a.tail_edt == "on", a.tail_buildup,
-                                    a.neighbour_tails, a.case, a.reverb)))
+                                    a.neighbour_tails, a.case, a.reverb, a.tail_beam)))
     return 0
 
 

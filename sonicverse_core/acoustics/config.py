@@ -34,6 +34,10 @@ class RenderConfig:
     tail_seed: int = 0  # the convolution tails' noise: another seed, another realisation of the same decays
     tail_edt: bool = True  # the convolution tails fall at first at the probes' baked EDT, then at their RT60
     tail_buildup: float = 0.02  # s: the late part of a source in another room builds up as 1 - e^(-t / this); 0: off
+    # the share of that late part that builds up at tail_buildup (a doorway's beam and its first reflections); the
+    # rest builds up at the coupled rooms' own rate (coupling.late_split's buildup_tau; rooms of their own only).
+    # 1: all at tail_buildup (before session 61)
+    tail_beam: float = 0.7
     neighbour_tails: int = 1  # coupled rooms: the most rooms besides the slowest mode's heard apart (0..4)
     # auto: a convolution tail of 64 blocks or more is convolved in long partitions after its first few (the same
     # convolution, its work spread over the blocks: long_tail.py); uniform: every partition one block long
@@ -68,6 +72,8 @@ class RenderConfig:
             raise ConfigError(f"tail_seed must be within 0..99999, got {self.tail_seed}")
         if not (0.0 <= self.tail_buildup <= 0.2):
             raise ConfigError(f"tail_buildup must be within 0..0.2 s, got {self.tail_buildup}")
+        if not (0.0 <= self.tail_beam <= 1.0):
+            raise ConfigError(f"tail_beam must be within 0..1, got {self.tail_beam}")
         if not (0 <= self.neighbour_tails <= 4):
             raise ConfigError(f"neighbour_tails must be within 0..4, got {self.neighbour_tails}")
         if self.tail_partitions not in ("auto", "uniform"):

@@ -187,6 +187,13 @@ class RoomCoupling:
         * ``modes_rt`` (R_k, 9), ``modes_share`` (R_k, R_s, R_l, 9), ``modes_room`` (R_k,): every mode, slowest
           first (the k-th slowest in each band): its RT60, its share of room l's energy for a source in room s, and
           the room it rings in most (at 1 kHz); mode 0 is ``slow_rt`` / ``slow`` / ``slow_room``;
+        * ``buildup_tau`` (R_s, R_l): how fast room l fills with the energy of a source in room s (s; 0 where s =
+          l): the two rooms' own balance, 1 / (lam_1 - lam_0) of its two modes (E_l(t) proportional to
+          e^(-lam_0 t) - e^(-lam_1 t)), their other leaks counted as losses; the mean over 500 Hz-2 kHz. Two like
+          rooms joined by a doorway of area S fill in 2 V / (c S); a dead room beside a live one in about its own
+          energy time constant. Energy that reaches l through another room fills it in the sum of the two steps'
+          times where that is quicker (a chain of build-ups: their mean delays add), so rooms that share only a
+          wall but each a door with a third fill through the third;
         * ``open`` (R,): :meth:`open_share`; ``gen``: a number no other split in this process has."""
         if self._split and self._split_version == self.scene.dynamic_version:  # per block: no door moved
             return next(iter(self._split.values()))
@@ -219,11 +226,28 @@ class RoomCoupling:
             if b == 5:
                 U0 = U
         _SPLITS[0] += 1
-        out = {"energy": energy, "slow": slow, "slow_rt": slow_rt, "own_rt": own_rt,
+        out = {"buildup_tau": self._buildup_tau(K, c), "energy": energy, "slow": slow, "slow_rt": slow_rt,
+               "own_rt": own_rt,
                "slow_room": int(np.argmax(U0[:, 0] ** 2)), "modes_rt": modes_rt, "modes_share": modes_share,
                "modes_room": np.argmax(U0 ** 2, axis=0), "open": self.open_share(), "gen": _SPLITS[0]}
         self._split = {key: out}
         return out
+
+    def _buildup_tau(self, K: np.ndarray, c: float) -> np.ndarray:
+        """``late_split``'s ``buildup_tau`` from the couplings K (R, R, 9) and the speed of sound ``c``."""
+        R = len(self.rooms)
+        tau = np.zeros((R, R))
+        mid = [int(np.argmin(np.abs(BANDS - f))) for f in (500.0, 1000.0, 2000.0)]
+        for b in mid:
+            loss = (c / 4) * (self.A[:, b] + K[:, :, b].sum(1)) / self.V  # each room's decay rate, its leaks counted
+            x = (c / 4) * K[:, :, b] / np.sqrt(np.outer(self.V, self.V))  # the symmetric exchange between two rooms
+            # the two eigenvalues of [[a, -x], [-x, d]] differ by sqrt((a - d)^2 + 4 x^2)
+            gap = np.sqrt((loss[:, None] - loss[None, :]) ** 2 + 4 * x ** 2)
+            tau += 1.0 / np.maximum(gap, 1e-9) / len(mid)
+        np.fill_diagonal(tau, 0.0)
+        for m in range(R):  # through room m, where quicker (Floyd-Warshall)
+            np.minimum(tau, tau[:, m:m + 1] + tau[m:m + 1, :], out=tau)
+        return tau
 
     def room_of(self, xy: np.ndarray) -> np.ndarray:
         """(n,) room index of points (n, 2) (the room of the slice's cell they are in), -1 outside every room."""

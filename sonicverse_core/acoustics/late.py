@@ -95,38 +95,66 @@ class LateState(PerSource):
 
 
 class TailBuildUp:
-    """The late part of a sound from another room builds up (``RenderConfig.tail_buildup``, tau): energy that
-    comes through a doorway arrives as a beam and fills the receiving room over a few of its reflections, so the
-    receiving room's late energy rises as 1 - e^(-t / tau) instead of starting at full level. The sends of the
-    other rooms' groups (1 + r, r not the listener's room) pass through K taps spread over 0-3 tau, each at a fixed
-    delay jittered within its interval so that the taps do not comb; tap k carries the share of e^(-t / tau) / tau
-    that falls in its interval. The shares sum to 1: the energy that crosses is the rooms' energy balance's, only
-    later (so the late level after the build-up is higher by about tau / T', T' = RT60 / 13.8, under 1 dB in the
-    homes). A room fills faster than it empties: tau is at most T' / 3 of the tail it feeds (a dead room's own tail
-    builds up in a few milliseconds). The sends' last 3 tau are kept per group; nothing is allocated per block."""
+    """The late part of a sound from another room builds up: the receiving room's late energy rises from nothing
+    instead of starting at full level. Two parts (session 61):
+
+    * a share ``beam`` (``RenderConfig.tail_beam``, 0.7) fills it as 1 - e^(-t / tau), tau =
+      ``RenderConfig.tail_buildup`` (20 ms): energy that comes through a doorway arrives as a beam and fills the
+      room over its first few reflections. A room fills faster than it empties: this tau is at most T' / 3 of the
+      tail it feeds (T' = RT60 / 13.8; a dead room's own tail builds up in a few milliseconds);
+    * the rest fills it at the coupled rooms' own rate (:meth:`set_slow`, per source room: ``coupling.late_split``'s
+      ``buildup_tau``, 1 / (lam_1 - lam_0) of the two rooms' energy balance, 0.15 s for two 47 m^3 rooms joined by a
+      doorway, 6 ms for a dead room beside a live one; at most ``TAU_MAX``). Until it is set, that part fills at
+      the first part's rate.
+
+    The diffuse build-up alone (all at the balance's rate) makes the early decay as long as the peer's and C50 4-10
+    dB low; the beam alone makes the early decay 25% short (``bench fidelity``'s two rooms; README). The sends of
+    the other rooms' groups (1 + r, r not the listener's room) pass through K taps per part spread over 0-3 tau,
+    each at a fixed delay jittered within its interval so that the taps do not comb; tap k carries the share of
+    e^(-t / tau) / tau that falls in its interval. The shares sum to 1: the energy that crosses is the rooms' energy
+    balance's, only later (so the late level after the build-up is higher: by about tau / T' for the beam's part,
+    under 1 dB in the homes). The sends' last 3 ``TAU_MAX`` are kept per group; nothing is allocated per block."""
 
     K = 8
+    TAU_MAX = 0.3  # s: the slowest build-up (rooms joined through a third or by a wall alone are capped here)
 
-    def __init__(self, tau: float, fs: float, groups: int, block: int):
-        self.tau, self.fs = tau, fs
+    def __init__(self, tau: float, fs: float, groups: int, block: int, beam: float = 1.0):
+        self.tau, self.fs, self.beam = tau, fs, beam
         u = np.linspace(0.0, 3.0, self.K + 1)  # the taps' intervals in units of tau
         e = np.exp(-u)
-        self.share = (e[:-1] - e[1:]) / (e[0] - e[-1])
+        share = (e[:-1] - e[1:]) / (e[0] - e[-1])
         self._at = u[:-1] + np.random.default_rng(7).uniform(0.0, 1.0, self.K) * (u[1] - u[0])  # fixed jitter
-        self.delay = np.zeros(self.K, np.int64)
+        self.two = beam < 1.0
+        self.share = np.r_[beam * share, (1.0 - beam) * share] if self.two else share
+        self.delay = np.zeros((groups, len(self.share)), np.int64)
         self.gain = np.sqrt(self.share).astype(np.float32)
         self._g = np.zeros(self.K)
-        self.rt = None
-        self.L = int(np.round(self._at.max() * tau * fs)) + 1
-        self.hist = np.zeros((groups, self.L + 8 * block), np.float32)  # moved to the front every 8 blocks
-        self.pos = self.L  # where this block goes: the last L samples end here
+        self.rt = self._te = None
+        self.slow = None  # the second part's tau per group (s); None: the first part's
+        self.L = int(np.round(self._at.max() * max(tau, self.TAU_MAX if self.two else 0.0) * fs)) + 1
+        self.hist = np.zeros((groups, self.L + block), np.float32)  # a ring per group: the last L samples and this block
+        self.pos = 0  # where this block goes in the rings
         self._acc = np.zeros(block)
 
     def _taps(self, rt60: float) -> None:
+        """The first part's delays (and the second's while it has no time of its own) for a tail of ``rt60``; the
+        second part's own delays are set by :meth:`set_slow` alone (they do not depend on the tail)."""
         te = min(self.tau, max(rt60, 0.05) / 13.8155 / 3.0)
+        if te == self._te:  # a tail of 0.83 s or more: the beam's time is tail_buildup whatever the decay
+            return
+        self._te = te
         np.multiply(self._at, te * self.fs, out=self._g)
         np.round(self._g, out=self._g)
-        np.copyto(self.delay, self._g, casting="unsafe")
+        self.delay[:, :self.K] = self._g
+        if self.two and self.slow is None:
+            self.delay[:, self.K:] = self._g
+
+    def set_slow(self, tau: np.ndarray) -> None:
+        """The second part's build-up time per group (G,) in s (0 for a group that does not build up), capped at
+        ``TAU_MAX``. Called when the doors or the listener's room change, not per block."""
+        if self.two:
+            self.slow = np.clip(np.asarray(tau, float), 0.0, self.TAU_MAX)
+            self.delay[:, self.K:] = np.round(np.outer(self.slow, self._at) * self.fs)
 
     def process(self, sends: np.ndarray, lis_room: int, rt60: float) -> None:
         """Filter ``sends`` (G, B) in place: every group but the listener's own room's (0, and 1 + lis_room);
@@ -134,12 +162,12 @@ class TailBuildUp:
         if self.rt != rt60:
             self.rt = rt60
             self._taps(rt60)
-        self.pos = buildup_filter(sends, self.hist, self.L, self.pos, self.delay, self.gain,
+        self.pos = buildup_filter(sends, self.hist, self.pos, self.delay, self.gain,
                                   1 + lis_room if lis_room >= 0 else 0, self._acc)
 
     def reset(self) -> None:
         self.hist[:] = 0.0
-        self.pos = self.L
+        self.pos = 0
 
 
 class LateReverb:
@@ -196,7 +224,8 @@ class LateReverb:
         buildup = cfg.tail_buildup > 0 and self.groups > 1  # other rooms' sends build up (rooms known)
 
         def build_up():
-            return TailBuildUp(cfg.tail_buildup, float(cfg.sample_rate), self.groups, cfg.block) if buildup else None
+            return TailBuildUp(cfg.tail_buildup, float(cfg.sample_rate), self.groups, cfg.block,
+                               beam=cfg.tail_beam if self.modal else 1.0) if buildup else None
 
         st.buildup = build_up()
         if self.modal:
@@ -369,6 +398,11 @@ class LateReverb:
                     np.maximum(st.rt_send, float(np.mean(split["modes_rt"][t.mode, 3:6])), out=st.rt_slow[j])
                 else:
                     st.rt_slow[j] = 0.0
+            if st.buildup is not None:  # how fast the listener's room fills from each other room
+                slow = np.r_[0.0, split["buildup_tau"][:, lr]]
+                for b in (st.buildup, st.buildup_slow, *(t.buildup for t in st.more)):
+                    if b is not None:
+                        b.set_slow(slow)
             st.room_reverbs = int(np.count_nonzero(st.modal_w[0] > 1e-4) + np.count_nonzero(st.modal_w[1] > 1e-4)
                                   + sum(np.count_nonzero(t.w > 1e-4) for t in st.more if t.room >= 0))
         self.r.stats["room_reverbs"] = st.room_reverbs

@@ -44,36 +44,40 @@ def fdn_process(x, out, buf, pos, delays, b0, p, z, cl, cr, norm, y):
 
 
 @njit(**_opts)
-def buildup_filter(sends, hist, L, pos, delay, gain, skip, acc):
+def buildup_filter(sends, hist, pos, delay, gain, skip, acc):
     """The other rooms' sends through the build-up's taps, in place (``late.TailBuildUp``): sends (G, B); hist
-    (G, W), W >= L + B: the sends' last L samples end at column ``pos`` and this block is written after them (when
-    it would not fit, the last L samples move to the front first: a copy every (W - L) / B blocks, not a shift of L
-    every block); out[g, t] = sum_k gain[k] x[g, t - delay[k]] (delay < L) for every group but 0 and ``skip`` (the
-    listener's own room's), summed in float64 over k in order. acc (B,) float64 scratch. Returns the new ``pos``."""
+    (G, W): a ring of each group's sends, this block written from column ``pos`` on (wrapping at W); out[g, t] =
+    sum_k gain[k] x[g, t - delay[g, k]] (delay (G, K) <= W - B: each group its own taps) for every group but 0 and
+    ``skip`` (the listener's own room's), summed in float64 over k in order. Nothing is moved: each tap reads its B
+    samples in at most two runs (a history copied to the front every few blocks cost 3 times the taps with a 0.9 s
+    history). acc (B,) float64 scratch. Returns the next block's ``pos``."""
     G, B = sends.shape
     W = hist.shape[1]
-    if pos + B > W:
-        for g in range(G):
-            h = hist[g]
-            for t in range(L):
-                h[t] = h[pos - L + t]
-        pos = L
+    n1 = min(B, W - pos)  # this block's samples before the ring wraps
     for g in range(G):
         h = hist[g]
-        for t in range(B):
+        for t in range(n1):
             h[pos + t] = sends[g, t]
+        for t in range(n1, B):
+            h[pos + t - W] = sends[g, t]
         if g == 0 or g == skip:
             continue
         for t in range(B):
             acc[t] = 0.0
-        for k in range(len(delay)):
+        for k in range(len(gain)):
             a = gain[k]  # float32 x float32, then summed in float64, as the per-sample loop did
-            x = h[pos - delay[k]:pos - delay[k] + B]
-            for t in range(B):
-                acc[t] += a * x[t]
+            s0 = pos - delay[g, k]
+            if s0 < 0:
+                s0 += W
+            m = min(B, W - s0)
+            for t in range(m):
+                acc[t] += a * h[s0 + t]
+            for t in range(m, B):
+                acc[t] += a * h[s0 + t - W]
         for t in range(B):
             sends[g, t] = acc[t]
-    return pos + B
+    pos += B
+    return pos - W if pos >= W else pos
 
 
 @njit(**_opts)

@@ -34,8 +34,9 @@ listeners are added):
   band; no discrete echoes at the onset), or a cheaper FDN; the probes of the listener's room are mixed by
   inverse-distance weights. Sources in other rooms send through the rooms' coupling (``coupling.py``: a per-band
   energy balance through doors and walls), one send per room, filtered per band; another room's send builds up
-  over ``RenderConfig.tail_buildup`` (20 ms: ``late.TailBuildUp``), as energy through a doorway fills the
-  listener's room over a few reflections. Each source's send is delayed
+  (``late.TailBuildUp``): a share ``RenderConfig.tail_beam`` (0.7) over ``RenderConfig.tail_buildup`` (20 ms), as
+  a doorway's beam fills the listener's room over a few reflections, the rest at the two rooms' own rate
+  (``coupling.late_split``'s ``buildup_tau``, 0.15 s for two 47 m^3 rooms and a doorway). Each source's send is delayed
   by its travel time plus the mixing time (sqrt(V) ms, Polack), so the tail starts after the direct sound and the
   early reflections, and falls with distance (Barron). With probes baked per room (``BakeConfig.per_room``, the
   default) and convolution, each send feeds two tails instead, on independent noise: the listener's room's own
