@@ -71,7 +71,7 @@ def _stock(scene, size, frames) -> dict:
     import pyrender
 
     from app.scene.visual import VisualScene
-    from sonicverse_core.sensors.camera import keep_display_on_delete, release_offscreen
+    from sonicverse_core.sensors.offscreen import keep_display_on_delete, release_offscreen
 
     with _session(scene, size) as s:
         s.views.close()
@@ -198,7 +198,7 @@ def _gl_renderer() -> str:
     try:
         from OpenGL import GL
 
-        from sonicverse_core.sensors.camera import offscreen_renderer, release_offscreen
+        from sonicverse_core.sensors.offscreen import offscreen_renderer, release_offscreen
 
         r = offscreen_renderer(16, 16)
         r._platform.make_current()

@@ -24,7 +24,7 @@ from sonicverse_core.scene.furniture import turtlebot
 from sonicverse_core.scene.look import LIGHT_DIR, bake_lighting  # noqa: F401
 from sonicverse_core.scene.model import yaw_pose
 from sonicverse_core.sensors.camera import RenderScene, camera_matrix as head_matrix  # sets PYOPENGL_PLATFORM=egl
-from sonicverse_core.sensors.camera import offscreen_renderer  # noqa: F401  (re-exported)
+from sonicverse_core.sensors.offscreen import offscreen_renderer  # noqa: F401  (re-exported)
 
 import pyrender  # noqa: E402
 
@@ -114,7 +114,7 @@ class VisualScene:
         self.cam_node = self.scene.add(self.camera, pose=np.eye(4))
         self.renderer = offscreen_renderer(width, height, msaa=msaa, colour_only=True)
         if shading == "pbr":
-            from sonicverse_core.sensors.camera import use_pbr_shaders
+            from sonicverse_core.sensors.offscreen import use_pbr_shaders
 
             use_pbr_shaders(self.renderer)
         self._flags = pyrender.RenderFlags.FLAT if shading in ("home", "baked") else \
@@ -223,7 +223,7 @@ class VisualScene:
 
     def close(self) -> None:
         if self.renderer is not None:
-            from sonicverse_core.sensors.camera import release_offscreen
+            from sonicverse_core.sensors.offscreen import release_offscreen
 
             release_offscreen(self.renderer)
             self.renderer = None
