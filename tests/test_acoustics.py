@@ -109,6 +109,13 @@ def test_the_two_scattering_models_part_as_documented():
     st, _ = rt(ceiling, "stochastic")
     vec, _ = rt(ceiling, "vector")
     assert np.all(vec > 1.15 * st), (vec, st)
+    # BakeConfig.min_scattering 1 (bench fidelity --min-scattering 1): every bounce Lambertian, the field diffuse:
+    # under the absorbing ceiling the rays no longer keep to the walls, and the room decays faster
+    with pytest.raises(ConfigError, match="min_scattering"):
+        BakeConfig(min_scattering=1.5)
+    s = load_scene(ceiling)
+    lam = bake_probe(SceneRayCaster(s), [3.3, 2.6, 1.5], BakeConfig(min_scattering=1.0)).rt60[mid]
+    assert np.all(lam < 0.85 * st), (lam, st)
 
 
 def test_occlusion_attenuates_high_bands_more():

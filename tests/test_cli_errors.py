@@ -70,6 +70,7 @@ def table(d):
         ["bench", "rays", "--rays", "0"], ["bench", "accuracy", "--reference-rays", "10"],
         ["bench", "fidelity", "--rays", "5"], ["bench", "fidelity", "--realisations", "0"],
         ["bench", "fidelity", "--case", "attic"], ["bench", "fidelity", "--neighbour-tails", "5"],
+        ["bench", "fidelity", "--min-scattering", "2"],
         ["bench", "audio", "--listener-room", "attic"], ["bench", "audio", "--neighbour-tails", "-1"],
         ["scene", "info", "builtin:three-rooms?door=ajar"], ["scene", "info", "builtin:three-rooms?middle=Cheese"],
         ["scene", "info", "builtin:three-rooms?hall=Carpet"],

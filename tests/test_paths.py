@@ -188,6 +188,8 @@ def test_bench_fidelity_runs_both_simulators_and_the_sealed_rooms_meet_the_mass_
         for k in ("G", "T30", "EDT", "C50", "DRR"):
             assert len(c["ours"][k]) == len(c["pyroomacoustics"][k]) == 5
         assert c["time_s"]["ours_render"] > 0 and c["time_s"]["pyroomacoustics"] > 0
+        assert np.array(c["windows"]["ours_minus_peer_db"]).shape == (5, len(c["windows"]["ms"]) - 1)
+        assert all(v is None or np.isfinite(v) for row in c["windows"]["ours_minus_peer_db"] for v in row)
     round_the_corner = next(c for c in d["cases"] if "corner" in c["case"])
     assert round_the_corner["vs_pyroomacoustics"]["G"]["met"]  # was 27 dB low before paths and room-aware sends
     assert d["sealed"]["met"]
@@ -499,3 +501,29 @@ def test_bench_cues_the_paths_point_to_the_source_or_its_doorway(cli):
                 assert v[c]["path_share_db"] <= 0.01  # the paths are part of every model's output
     bad = cli("bench", "cues", "--seconds", "0.5")
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_bench_fidelity_window_energies_say_where_in_time_two_responses_part():
+    """``window_energies``: a decay's energy per window after the direct sound (the analytic integral of the squared
+    exponential, within 0.3 dB where the octave filter has settled), and a response twice as loud after 200 ms
+    differs from the original by 6 dB in those windows alone."""
+    from app.bench.fidelity import BANDS, FS, WINDOWS_MS, window_energies
+
+    rng = np.random.default_rng(3)
+    T, t0 = 1.0, 400
+    n = t0 + int(1.7 * FS)
+    t = np.arange(n - t0) / FS
+    hs = np.zeros((32, n))  # 32 noises: the windows' energies, not one draw's chance
+    hs[:, t0:] = rng.standard_normal((32, n - t0)) * np.exp(-6.9078 * t / T)  # 60 dB of energy in T
+    e = window_energies(list(hs), t_dir=t0)
+    assert e.shape == (len(BANDS), len(WINDOWS_MS) - 1)
+    k = 13.8155 / T  # energy decay rate
+    want = np.array([np.exp(-k * a / 1000) - np.exp(-k * b / 1000) for a, b in zip(WINDOWS_MS[:-1], WINDOWS_MS[1:])])
+    for b in range(len(BANDS)):  # the shape over windows 50 ms - 1.6 s, relative to the 100-200 ms window
+        got = 10 * np.log10(e[b, 2:] / e[b, 3])
+        np.testing.assert_allclose(got, 10 * np.log10(want[2:] / want[3]), atol=0.3 if BANDS[b] >= 500 else 0.5)
+    g = hs.copy()
+    g[:, t0 + int(0.2 * FS):] *= 2.0
+    d = 10 * np.log10(window_energies(list(g), t_dir=t0) / e)
+    np.testing.assert_allclose(d[:, 5:], 6.02, atol=0.05)
+    np.testing.assert_allclose(d[:, :3], 0.0, atol=0.05)

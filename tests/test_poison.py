@@ -354,3 +354,25 @@ def test_the_callback_allocates_no_array_memory_in_steady_state():
     # a kernel making an array per source would add >= 4 per block here; which glue kernels run varies a little
     # from block to block (the pose ramp ends between frames), hence not exact equality
     assert abs(per_block[6] - per_block[2]) < 1, per_block
+
+
+def test_bakes_cached_before_min_scattering_keep_their_keys():
+    """``BakeConfig.min_scattering`` (bench fidelity's diffuse check) is left out of a bake's cache key at its
+    default, 0: the bakes on disk from before it stay valid; any other value bakes apart."""
+    import hashlib
+    from dataclasses import asdict
+
+    from sonicverse_core.acoustics import probes as P
+    from sonicverse_core.scene.spec import load_scene
+
+    scene = load_scene(SCENE)
+    pos = np.array([[3.0, 2.5, 1.5]])
+    cfg = P.BakeConfig()
+    h = hashlib.sha256()  # the key as it was made before the field
+    h.update(scene.static_hash().encode())
+    h.update(np.round(pos, 4).tobytes())
+    h.update(json.dumps({k: v for k, v in asdict(cfg).items() if k != "min_scattering"}, sort_keys=True).encode())
+    h.update(b"-")
+    h.update(b"probes-v7")
+    assert P._cache_key(scene, pos, cfg, [None]) == h.hexdigest()[:24]
+    assert P._cache_key(scene, pos, P.BakeConfig(min_scattering=0.5), [None]) != h.hexdigest()[:24]

@@ -9,7 +9,8 @@ D = TL - 10 log10(S / A2) for the sealed rooms (pyroomacoustics has no transmiss
 Per case and octave band (250 Hz - 4 kHz): strength G (dB re the free field at 10 m; both use the 1/r law), T30,
 EDT (s), C50 (dB) and DRR (dB, the first arrival's +-2.5 ms over the rest), ours vs the peer, and our run time
 (bake and render) vs the peer's. Targets (issue 15): G within 3 dB, T30 within 20% (10% in the diffuse shoebox),
-C50 within 3 dB, EDT within 25%; sealed: D within 3 dB of the estimate.
+C50 within 3 dB, EDT within 25%; sealed: D within 3 dB of the estimate. Each case also gives where in time the two
+responses part: ours over the peer's energy per band in windows after the direct sound (:func:`window_energies`).
 """
 from __future__ import annotations
 
@@ -77,6 +78,27 @@ def room_parameters(h, fs: int = FS, t_dir: int | None = None) -> dict:
     return {k: [None if v is None else round(float(v), 3) for v in vals] for k, vals in out.items()}
 
 
+WINDOWS_MS = (0, 20, 50, 100, 200, 400, 800, 1600)  # window_energies' edges after the direct sound
+
+
+def window_energies(h, fs: int = FS, t_dir: int = 0) -> np.ndarray:
+    """(5, 7) energy per octave band (``BANDS``) in the windows ``WINDOWS_MS`` after ``t_dir`` (samples) of a mono
+    response or of the mean squared band signals of a list of them (as :func:`room_parameters`): where in time two
+    responses part, which G, EDT and C50 sum over."""
+    hs = [np.asarray(x, float) for x in h] if isinstance(h, (list, tuple)) else [np.asarray(h, float)]
+    n = max(max(len(x) for x in hs), t_dir + int(WINDOWS_MS[-1] * fs / 1000))
+    hs = [np.pad(x, (0, n - len(x))) for x in hs]
+    edges = [t_dir + int(ms * fs / 1000) for ms in WINDOWS_MS]
+    out = np.zeros((len(BANDS), len(edges) - 1))
+    for b, f0 in enumerate(BANDS):
+        x = np.mean([_band(y, f0, fs) ** 2 for y in hs], axis=0)
+        out[b] = [x[a:z].sum() for a, z in zip(edges[:-1], edges[1:])]
+    return out
+
+
+_PEER_MIN_SCATTERING = [0.0]  # bench_fidelity's min_scattering while it runs the peer
+
+
 def _pra_material(name: str):
     import pyroomacoustics as pra
 
@@ -84,7 +106,7 @@ def _pra_material(name: str):
 
     m = get_material(name)
     return pra.Material(energy_absorption={"coeffs": list(m.absorption[1:8]), "center_freqs": list(ALL[1:8])},
-                        scattering=m.scattering)
+                        scattering=max(m.scattering, _PEER_MIN_SCATTERING[0]))
 
 
 def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None, leaves=None):
@@ -166,15 +188,17 @@ def _ours(spec: str, src, lis, seconds: float, scattering: str = "stochastic",
           er_order: int = 1, per_room: bool = True, er_images: str = "room",
           realisation: int = 0, tail_edt: bool = True,
           tail_buildup: float = BUILDUP, neighbour_tails: int = NEIGHBOURS,
-          reverb: str = "convolution", tail_beam: float = BEAM) -> tuple[np.ndarray, float, float]:
-    """Our mono impulse response; ``realisation`` > 0: another bake seed and another tail noise (0: the defaults)."""
+          reverb: str = "convolution", tail_beam: float = BEAM,
+          min_scattering: float = 0.0) -> tuple[np.ndarray, float, float]:
+    """Our mono impulse response; ``realisation`` > 0: another bake seed and another tail noise (0: the defaults);
+    ``min_scattering``: ``BakeConfig.min_scattering``."""
     from sonicverse_core.acoustics.probes import BakeConfig, scene_probes
     from sonicverse_core.acoustics.renderer import AcousticRenderer, RenderConfig
     from sonicverse_core.scene.spec import load_scene
 
     scene = load_scene(spec)
     t0 = time.perf_counter()
-    bake = BakeConfig(scattering=scattering, per_room=per_room)
+    bake = BakeConfig(scattering=scattering, per_room=per_room, min_scattering=min_scattering)
     probes = scene_probes(scene, dataclasses.replace(bake, seed=bake.seed + realisation))
     r = AcousticRenderer(scene, RenderConfig(sample_rate=FS, output="mono", er_order=er_order,
                                              er_images=er_images, tail_seed=realisation, tail_edt=tail_edt,
@@ -247,6 +271,10 @@ def _cases():
            (walls, ref.FLOOR, ref.CEILING, floors, lintel, leaf), (1.2, 1.2, 1.2), (2.8, 3.0, 1.5), None)
     yield ("dead room beside a live one, source in the live", spec, TWO_ROOMS, 3.0,
            (walls, ref.FLOOR, ref.CEILING, floors, lintel, leaf), (6.0, 1.0, 1.2), (1.0, 0.6, 1.5), None)
+    # the same source heard in its own room (session 63): the live room's decay where it rings, against which the
+    # dead room's listener above hears what comes through the doorway
+    yield ("dead room beside a live one, both in the live", spec, TWO_ROOMS, 3.0,
+           (walls, ref.FLOOR, ref.CEILING, floors, lintel, leaf), (6.0, 1.0, 1.2), (7.0, 3.2, 1.5), None)
     # three rooms in a row (session 36): a live west room, a dead hall, an east room less live than the west; the
     # east room's decay, heard in the hall, is not the slowest mode's (the west's): more than one neighbour apart
     live = "WoodPanel"
@@ -357,7 +385,7 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
                    scattering: str = "stochastic", er_order: int = 1, per_room: bool = True,
                    er_images: str = "room", realisations: int = 1, tail_edt: bool = True,
                    tail_buildup: float = BUILDUP, neighbour_tails: int = NEIGHBOURS, case: str | None = None,
-                   reverb: str = "convolution", tail_beam: float = BEAM) -> dict:
+                   reverb: str = "convolution", tail_beam: float = BEAM, min_scattering: float = 0.0) -> dict:
     """``scattering``: our bake's scattering model (``BakeConfig.scattering``; the peer's is "vector");
     ``er_order``, ``er_images``: our image sources' order and geometry (``RenderConfig``); ``per_room``: probes baked per room, the
     rooms' decays coupled (``BakeConfig.per_room``); ``tail_edt``: our tails fall first at the bake's EDT
@@ -365,7 +393,10 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     time constant (s; ``RenderConfig.tail_buildup``), its share ``tail_beam`` (``RenderConfig.tail_beam``; the rest
     at the coupled rooms' own rate); ``neighbour_tails``: coupled rooms heard apart besides the
     slowest mode's (``RenderConfig.neighbour_tails``); ``reverb``: our late reverb, the convolution or the cheaper
-    FDN (``RenderConfig.reverb``); ``case``: only the cases whose name contains it (and no
+    FDN (``RenderConfig.reverb``); ``min_scattering``: every material scatters at least this much in both models
+    (``BakeConfig.min_scattering``; the peer's materials likewise; no sealed rooms): at 1 every bounce is
+    Lambertian in both, one reflection law, so what is left is the rest of the two models (the scattering models
+    part most where s is small: ``probes``' docstring); ``case``: only the cases whose name contains it (and no
     sealed rooms unless it names them). ``realisations`` N > 1: both models run N times (the peer with
     seeds ``seed`` .. ``seed + N - 1``, ours with N bake seeds and tail noises) and each case's parameters are
     those of the mean squared band signals (:func:`room_parameters`): the models' expected responses compared,
@@ -375,16 +406,12 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
 
         raise ConfigError(f"realisations must be within 1..64, got {realisations}")
     from sonicverse_core.acoustics.probes import BakeConfig
-    from sonicverse_core.progress import progress
-
     from sonicverse_core.acoustics.renderer import RenderConfig
 
-    BakeConfig(scattering=scattering), RenderConfig(er_order=er_order, er_images=er_images,
-                                                    tail_buildup=tail_buildup, tail_beam=tail_beam,
-                                                    neighbour_tails=neighbour_tails,
-                                                    reverb=reverb)  # checked before anything runs
-
-    cases, seconds = [], 3.0
+    BakeConfig(scattering=scattering, min_scattering=min_scattering)  # checked before anything runs
+    RenderConfig(er_order=er_order, er_images=er_images, tail_buildup=tail_buildup, tail_beam=tail_beam,
+                 neighbour_tails=neighbour_tails, reverb=reverb)
+    seconds = 3.0
     todo = list(_cases())
     if quick:
         todo = todo[1:2] + todo[4:5] + todo[6:7]
@@ -394,36 +421,20 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
             from sonicverse_core.errors import ConfigError
 
             raise ConfigError(f"no fidelity case matches '{case}'; the cases: {', '.join(c[0] for c in _cases())}")
-    for name, spec, corners, H, mats, src, lis, dims in progress(todo, len(todo), "rooms"):
-        walls, floor, ceiling = mats[:3]
-        h_peer, h, t_peer, t_bake, t_render = [], [], 0.0, 0.0, 0.0
-        for k in range(realisations):
-            t0 = time.perf_counter()
-            h_peer.append(_pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed + k, *mats[3:]))
-            t_peer += (time.perf_counter() - t0) / realisations
-            y, tb, tr = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images, realisation=k,
-                              tail_edt=tail_edt, tail_buildup=tail_buildup, neighbour_tails=neighbour_tails,
-                              reverb=reverb, tail_beam=tail_beam)
-            h.append(y)
-            t_bake, t_render = t_bake + tb / realisations, t_render + tr / realisations
-        t_dir = _onset(spec, src, lis)  # both from the shortest open path's time (the peer's filter: 40 samples on)
-        ours, peer = room_parameters(h, t_dir=t_dir), room_parameters(h_peer, t_dir=t_dir + PRA_DELAY)
-        row = {"case": name, "scene": spec, "source": list(src), "listener": list(lis), "bands_hz": list(BANDS),
-               "ours": ours, "pyroomacoustics": peer, "vs_pyroomacoustics": _errors(ours, peer, "diffuse" in name),
-               "time_s": {"ours_bake": round(t_bake, 3), "ours_render": round(t_render, 3),
-                          "ours_realtime_fraction": round(t_render / seconds, 4),
-                          "pyroomacoustics": round(t_peer, 3)}}
-        if dims is not None:
-            row["theory"] = _theory_shoebox(dims, walls, floor, ceiling, src, lis)
-        cases.append(row)
+    _PEER_MIN_SCATTERING[0] = min_scattering
+    try:
+        cases = _run_cases(todo, realisations, rays, seed, seconds, scattering, er_order, per_room, er_images,
+                           tail_edt, tail_buildup, neighbour_tails, reverb, tail_beam, min_scattering)
+    finally:
+        _PEER_MIN_SCATTERING[0] = 0.0
     sealed = (_sealed(scattering, per_room, tail_edt, tail_buildup, reverb, tail_beam)
-              if case is None or "sealed" in case.lower() else None)
+              if (case is None or "sealed" in case.lower()) and not min_scattering else None)
     met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
     out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
            f"{rays} rays, receiver radius 0.5 m, seed {seed})", "realisations": realisations, "sample_rate": FS, "scattering": scattering, "er_order": er_order,
            "er_images": er_images, "per_room": per_room, "tail_edt": tail_edt,
            "tail_buildup": tail_buildup, "tail_beam": tail_beam,
-           "neighbour_tails": neighbour_tails, "reverb": reverb, "case": case,
+           "neighbour_tails": neighbour_tails, "reverb": reverb, "min_scattering": min_scattering, "case": case,
            "onset": f"the direct sound's time along the shortest open path (the peer's {PRA_DELAY} samples later)",
            "cases": cases,
            "sealed": sealed,
@@ -434,6 +445,42 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     return out
 
 
+def _run_cases(todo, realisations, rays, seed, seconds, scattering, er_order, per_room, er_images, tail_edt,
+               tail_buildup, neighbour_tails, reverb, tail_beam, min_scattering) -> list:
+    """:func:`bench_fidelity`'s rows, one per case of ``todo``."""
+    from sonicverse_core.progress import progress
+
+    cases = []
+    for name, spec, corners, H, mats, src, lis, dims in progress(todo, len(todo), "rooms"):
+        walls, floor, ceiling = mats[:3]
+        h_peer, h, t_peer, t_bake, t_render = [], [], 0.0, 0.0, 0.0
+        for k in range(realisations):
+            t0 = time.perf_counter()
+            h_peer.append(_pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed + k, *mats[3:]))
+            t_peer += (time.perf_counter() - t0) / realisations
+            y, tb, tr = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images, realisation=k,
+                              tail_edt=tail_edt, tail_buildup=tail_buildup, neighbour_tails=neighbour_tails,
+                              reverb=reverb, tail_beam=tail_beam, min_scattering=min_scattering)
+            h.append(y)
+            t_bake, t_render = t_bake + tb / realisations, t_render + tr / realisations
+        t_dir = _onset(spec, src, lis)  # both from the shortest open path's time (the peer's filter: 40 samples on)
+        ours, peer = room_parameters(h, t_dir=t_dir), room_parameters(h_peer, t_dir=t_dir + PRA_DELAY)
+        row = {"case": name, "scene": spec, "source": list(src), "listener": list(lis), "bands_hz": list(BANDS),
+               "ours": ours, "pyroomacoustics": peer, "vs_pyroomacoustics": _errors(ours, peer, "diffuse" in name),
+               "time_s": {"ours_bake": round(t_bake, 3), "ours_render": round(t_render, 3),
+                          "ours_realtime_fraction": round(t_render / seconds, 4),
+                          "pyroomacoustics": round(t_peer, 3)}}
+        e_ours, e_peer = window_energies(h, t_dir=t_dir), window_energies(h_peer, t_dir=t_dir + PRA_DELAY)
+        gone = np.minimum(e_ours / e_ours.sum(1, keepdims=True), e_peer / e_peer.sum(1, keepdims=True)) < 1e-9
+        diff = np.round(10 * np.log10(np.maximum(e_ours, 1e-300) / np.maximum(e_peer, 1e-300)), 1)
+        row["windows"] = {"ms": list(WINDOWS_MS), "ours_minus_peer_db": [  # None: a response 90 dB down there
+            [None if g else float(v) for v, g in zip(dr, gr)] for dr, gr in zip(diff, gone)]}
+        if dims is not None:
+            row["theory"] = _theory_shoebox(dims, walls, floor, ceiling, src, lis)
+        cases.append(row)
+    return cases
+
+
 def _plot(cases: list, path: str, realisations: int = 1) -> None:
     import matplotlib
 
@@ -442,10 +489,10 @@ def _plot(cases: list, path: str, realisations: int = 1) -> None:
 
     fig, axs = plt.subplots(1, 4, figsize=(18, 4.5))
     for ax, k in zip(axs, ("G", "T30", "EDT", "C50")):
-        for c in cases:
+        for i, c in enumerate(cases):
             a = np.array([np.nan if v is None else v for v in c["ours"][k]], float)
             b = np.array([np.nan if v is None else v for v in c["pyroomacoustics"][k]], float)
-            ax.plot(b, a, "o", label=c["case"])
+            ax.plot(b, a, "os^"[i // 10 % 3], color=f"C{i % 10}", label=c["case"])  # 10 colours, then a new marker
         lo = np.nanmin([ax.get_xlim()[0], ax.get_ylim()[0]])
         hi = np.nanmax([ax.get_xlim()[1], ax.get_ylim()[1]])
         ax.plot([lo, hi], [lo, hi], "k-", lw=0.8)

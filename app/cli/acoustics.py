@@ -197,10 +197,11 @@ def add_audio_commands(sub, bench_sub) -> None:
     bc.set_defaults(func=cmd_bench_accuracy)
     bf = bench_sub.add_parser("fidelity", help="sound between rooms: ours vs pyroomacoustics and theory",
                               description="Shoeboxes, an L-shaped room, two rooms joined by a door (with and "
-                              "without line of sight) and a dead hall between two live rooms, rendered by us and "
-                              "by pyroomacoustics' hybrid simulator in the same run; G, T30, EDT, C50, DRR per "
-                              "octave band 250 Hz-4 kHz, errors against the targets, run times; sealed rooms "
-                              "against the mass-law estimate.")
+                              "without line of sight), a dead room beside a live one and a dead hall between two "
+                              "live rooms, rendered by us and by pyroomacoustics' hybrid simulator in the same "
+                              "run; G, T30, EDT, C50, DRR per octave band 250 Hz-4 kHz, errors against the "
+                              "targets, run times, ours over the peer's energy in windows after the direct sound; "
+                              "sealed rooms against the mass-law estimate.")
     bf.add_argument("--rays", type=A.count(1000, 10_000_000), default=20_000,
                     help="pyroomacoustics' rays (default: %(default)s)")
     bf.add_argument("--plot", type=A.out_file(".png"), help="write a PNG of ours vs the peer per parameter")
@@ -231,6 +232,10 @@ def add_audio_commands(sub, bench_sub) -> None:
                     help="coupled rooms heard apart besides the slowest mode's (default: %(default)s)")
     bf.add_argument("--reverb", choices=("convolution", "fdn"), default="convolution",
                     help="our late reverb: partitioned convolution (default) or the cheaper FDN")
+    bf.add_argument("--min-scattering", type=A.number(0.0, 1.0), default=0.0, metavar="S",
+                    help="every material scatters at least S in both models (1: every bounce Lambertian in "
+                    "both, one reflection law, so what is left is the rest of the models; no sealed rooms; "
+                    "default: %(default)s)")
     bf.add_argument("--case", metavar="TEXT", default=None,
                     help="only the cases whose name contains TEXT (e.g. 'hall', 'shoebox')")
     bf.set_defaults(func=cmd_bench_fidelity)
@@ -274,7 +279,7 @@ def cmd_bench_fidelity(a) -> int:
 
     print(json.dumps(bench_fidelity(a.rays, a.plot, a.quick, a.seed, a.scattering, a.er_order, a.per_room,
                                     a.er_images, a.realisations, a.tail_edt == "on", a.tail_buildup,
-                                    a.neighbour_tails, a.case, a.reverb, a.tail_beam)))
+                                    a.neighbour_tails, a.case, a.reverb, a.tail_beam, a.min_scattering)))
     return 0
 
 

@@ -44,7 +44,9 @@ class BakeConfig:
     bakes that room's own decay (rays that leave it through an opening are lost to it) and the renderer couples
     the rooms' decays (``coupling.RoomCoupling.late_split``; the default since session 27: a dead room beside a
     live one keeps its own decay); off: each probe bakes the decay of the whole connected space around it (one
-    decay everywhere, as before)."""
+    decay everywhere, as before); min_scattering: every material scatters at least this much (0, the default, keeps
+    the table's; at 1 every bounce is Lambertian in either model: ``bench fidelity --min-scattering 1`` compares
+    the rest of two models without their scattering models)."""
 
     rays: int = 2000
     max_bounces: int = 400
@@ -53,6 +55,7 @@ class BakeConfig:
     seed: int = 0
     scattering: str = "stochastic"
     per_room: bool = True
+    min_scattering: float = 0.0
 
     def __post_init__(self):
         if not (16 <= self.rays <= 10_000_000):
@@ -61,6 +64,8 @@ class BakeConfig:
             raise ConfigError("max_bounces must be 1..1e5 and max_time 0.05..60 s")
         if self.scattering not in SCATTERING:
             raise ConfigError(f"unknown scattering model '{self.scattering}'; use one of {', '.join(SCATTERING)}")
+        if not (0.0 <= self.min_scattering <= 1.0):
+            raise ConfigError(f"min_scattering must be within 0..1, got {self.min_scattering}")
 
 
 @dataclass
@@ -163,6 +168,7 @@ def trace_decay(caster, position: np.ndarray, config: BakeConfig, room=None) -> 
     opening and is lost to this room (its energy belongs to the neighbour, which the coupling accounts for)."""
     rng = np.random.default_rng(config.seed)
     alpha, scat, _ = material_arrays()
+    scat = np.maximum(scat, config.min_scattering)
     nb = int(np.ceil(config.max_time / config.hist_dt)) + 1
     acc = np.zeros((len(BANDS), nb + 1))
     n = config.rays
@@ -273,7 +279,10 @@ def _cache_key(scene, positions: np.ndarray, config: BakeConfig, rooms: list) ->
     h = hashlib.sha256()
     h.update(scene.static_hash().encode())
     h.update(np.round(np.asarray(positions, np.float64), 4).tobytes())
-    h.update(json.dumps(asdict(config), sort_keys=True).encode())
+    cfg = asdict(config)
+    if not cfg["min_scattering"]:  # the default: the keys of bakes made before the field
+        del cfg["min_scattering"]
+    h.update(json.dumps(cfg, sort_keys=True).encode())
     for r in rooms:
         h.update(b"-" if r is None else np.round(np.asarray(r.footprint, np.float64), 4).tobytes())
     h.update(b"probes-v7")
