@@ -44,6 +44,19 @@ def _fit(db: np.ndarray, t: np.ndarray, hi: float, lo: float) -> float | None:
     return -60.0 / slope if slope < 0 else None
 
 
+def _responses(h) -> list:
+    """A response or a list of them (realisations) as float arrays of one length (zero-padded)."""
+    hs = [np.asarray(x, float) for x in h] if isinstance(h, (list, tuple)) else [np.asarray(h, float)]
+    n = max(len(x) for x in hs)
+    return [np.pad(x, (0, n - len(x))) for x in hs]
+
+
+def _band_power(hs: list, f0: float, fs: int) -> np.ndarray:
+    """The mean over responses ``hs`` of their squared octave-band signals at ``f0``: the ensemble's expected energy
+    in time."""
+    return np.mean([_band(y, f0, fs) ** 2 for y in hs], axis=0)
+
+
 def room_parameters(h, fs: int = FS, t_dir: int | None = None) -> dict:
     """G, T30, EDT, C50, DRR per band of a mono impulse response (1/r law: a unit source gives 1/r). The decay
     curves and C50 / DRR start at ``t_dir`` (samples; the direct sound's time), by default where the response first
@@ -53,9 +66,7 @@ def room_parameters(h, fs: int = FS, t_dir: int | None = None) -> dict:
     rays): the parameters are then those of their mean squared band signals, the ensemble's expected energy
     decay, so that one realisation's chance (an octave at 250 Hz holds few degrees of freedom in 50 ms) does not
     decide a comparison."""
-    hs = [np.asarray(x, float) for x in h] if isinstance(h, (list, tuple)) else [np.asarray(h, float)]
-    n = max(len(x) for x in hs)
-    hs = [np.pad(x, (0, n - len(x))) for x in hs]
+    hs = _responses(h)
     imp = np.zeros(fs)
     imp[0] = 1.0
     e0 = np.abs(hs[0])
@@ -63,7 +74,7 @@ def room_parameters(h, fs: int = FS, t_dir: int | None = None) -> dict:
         t_dir = int(np.argmax(e0 > 0.1 * e0.max()))  # the first arrival within 20 dB of the peak
     out = {k: [] for k in ("G", "T30", "EDT", "C50", "DRR")}
     for f0 in BANDS:
-        x = np.mean([_band(y, f0, fs) ** 2 for y in hs], axis=0)
+        x = _band_power(hs, f0, fs)
         ref = np.sum(_band(imp, f0, fs) ** 2) * 0.1 ** 2
         out["G"].append(10 * np.log10(np.sum(x) / ref))
         x = x[t_dir:]
@@ -85,31 +96,26 @@ def window_energies(h, fs: int = FS, t_dir: int = 0) -> np.ndarray:
     """(5, 7) energy per octave band (``BANDS``) in the windows ``WINDOWS_MS`` after ``t_dir`` (samples) of a mono
     response or of the mean squared band signals of a list of them (as :func:`room_parameters`): where in time two
     responses part, which G, EDT and C50 sum over."""
-    hs = [np.asarray(x, float) for x in h] if isinstance(h, (list, tuple)) else [np.asarray(h, float)]
-    n = max(max(len(x) for x in hs), t_dir + int(WINDOWS_MS[-1] * fs / 1000))
-    hs = [np.pad(x, (0, n - len(x))) for x in hs]
+    hs = _responses(h)
     edges = [t_dir + int(ms * fs / 1000) for ms in WINDOWS_MS]
     out = np.zeros((len(BANDS), len(edges) - 1))
     for b, f0 in enumerate(BANDS):
-        x = np.mean([_band(y, f0, fs) ** 2 for y in hs], axis=0)
-        out[b] = [x[a:z].sum() for a, z in zip(edges[:-1], edges[1:])]
+        x = _band_power(hs, f0, fs)
+        out[b] = [x[a:z].sum() for a, z in zip(edges[:-1], edges[1:])]  # past the end: what there is
     return out
 
 
-_PEER_MIN_SCATTERING = [0.0]  # bench_fidelity's min_scattering while it runs the peer
-
-
-def _pra_material(name: str):
+def _pra_material(name: str, min_scattering: float = 0.0):
     import pyroomacoustics as pra
 
     from sonicverse_core.scene.materials import BANDS as ALL, get_material
 
     m = get_material(name)
     return pra.Material(energy_absorption={"coeffs": list(m.absorption[1:8]), "center_freqs": list(ALL[1:8])},
-                        scattering=max(m.scattering, _PEER_MIN_SCATTERING[0]))
+                        scattering=max(m.scattering, min_scattering))
 
 
-def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None, leaves=None):
+def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None, leaves=None, min_scattering=0.0):
     """The extruded room's walls with its floor and ceiling replaced by one polygon per entry of ``floors``
     ((xy corners, floor material, ceiling material)), a box hung from the ceiling per entry of ``lintels``
     ((x0, x1, y0, y1, z0, material): its underside at z0 and its two faces across x, as over a doorway), and a box
@@ -123,7 +129,7 @@ def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None, l
 
     def coeffs(name):
         if name not in known:
-            m = _pra_material(name)
+            m = _pra_material(name, min_scattering)
             m.resample(room.octave_bands)
             known[name] = (np.asarray(m.absorption_coeffs, float), np.asarray(m.scattering_coeffs, float))
         return known[name]
@@ -157,26 +163,28 @@ def _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels=None, l
     return pra.Room(out, fs=room.fs, max_order=room.max_order, air_absorption=True, ray_tracing=True)
 
 
-def _pra_room(corners, H, walls, floor, ceiling, floors=None, lintels=None, leaves=None):
+def _pra_room(corners, H, walls, floor, ceiling, floors=None, lintels=None, leaves=None, min_scattering=0.0):
     """The peer's room: the outline extruded to H with image sources to order 3 (ray tracing on), per-room floors
-    and ceilings, the wall over a doorway and an open door's leaf where given (:func:`_pra_floors`)."""
+    and ceilings, the wall over a doorway and an open door's leaf where given (:func:`_pra_floors`); every
+    material scattering at least ``min_scattering``."""
     import pyroomacoustics as pra
 
-    mats = [_pra_material(m) for m in walls] if isinstance(walls, list) else _pra_material(walls)
+    ms = min_scattering
+    mats = [_pra_material(m, ms) for m in walls] if isinstance(walls, list) else _pra_material(walls, ms)
     room = pra.Room.from_corners(np.array(corners, float).T, fs=FS, max_order=3, materials=mats,
                                  ray_tracing=True, air_absorption=True)
-    room.extrude(H, materials={"floor": _pra_material(floor), "ceiling": _pra_material(ceiling)})
+    room.extrude(H, materials={"floor": _pra_material(floor, ms), "ceiling": _pra_material(ceiling, ms)})
     if floors or lintels or leaves:  # rooms with floors and ceilings of their own; the wall over a doorway; a leaf
-        room = _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels, leaves)
+        room = _pra_floors(room, corners, H, floors, walls, floor, ceiling, lintels, leaves, ms)
     return room
 
 
 def _pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed: int = 0, floors=None, lintels=None,
-                 leaves=None):
+                 leaves=None, min_scattering: float = 0.0):
     import pyroomacoustics as pra
 
     pra.random.seed(seed)  # its ray tracing draws from NumPy's and C++'s generators: the same run, the same numbers
-    room = _pra_room(corners, H, walls, floor, ceiling, floors, lintels, leaves)
+    room = _pra_room(corners, H, walls, floor, ceiling, floors, lintels, leaves, min_scattering)
     room.set_ray_tracing(n_rays=rays, receiver_radius=0.5)
     room.add_source(list(src))
     room.add_microphone(np.array(lis, float)[:, None])
@@ -407,6 +415,8 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
         raise ConfigError(f"realisations must be within 1..64, got {realisations}")
     from sonicverse_core.acoustics.probes import BakeConfig
     from sonicverse_core.acoustics.renderer import RenderConfig
+    from sonicverse_core.errors import ConfigError
+    from sonicverse_core.progress import progress
 
     BakeConfig(scattering=scattering, min_scattering=min_scattering)  # checked before anything runs
     RenderConfig(er_order=er_order, er_images=er_images, tail_buildup=tail_buildup, tail_beam=tail_beam,
@@ -418,45 +428,17 @@ def bench_fidelity(rays: int = 20_000, plot: str | None = None, quick: bool = Fa
     if case is not None:
         todo = [c for c in todo if case.lower() in c[0].lower()]
         if not todo and "sealed" not in case.lower():
-            from sonicverse_core.errors import ConfigError
-
             raise ConfigError(f"no fidelity case matches '{case}'; the cases: {', '.join(c[0] for c in _cases())}")
-    _PEER_MIN_SCATTERING[0] = min_scattering
-    try:
-        cases = _run_cases(todo, realisations, rays, seed, seconds, scattering, er_order, per_room, er_images,
-                           tail_edt, tail_buildup, neighbour_tails, reverb, tail_beam, min_scattering)
-    finally:
-        _PEER_MIN_SCATTERING[0] = 0.0
-    sealed = (_sealed(scattering, per_room, tail_edt, tail_buildup, reverb, tail_beam)
-              if (case is None or "sealed" in case.lower()) and not min_scattering else None)
-    met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
-    out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
-           f"{rays} rays, receiver radius 0.5 m, seed {seed})", "realisations": realisations, "sample_rate": FS, "scattering": scattering, "er_order": er_order,
-           "er_images": er_images, "per_room": per_room, "tail_edt": tail_edt,
-           "tail_buildup": tail_buildup, "tail_beam": tail_beam,
-           "neighbour_tails": neighbour_tails, "reverb": reverb, "min_scattering": min_scattering, "case": case,
-           "onset": f"the direct sound's time along the shortest open path (the peer's {PRA_DELAY} samples later)",
-           "cases": cases,
-           "sealed": sealed,
-           "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}
-    if plot:
-        _plot(cases, plot, realisations)
-        out["plot"] = plot
-    return out
-
-
-def _run_cases(todo, realisations, rays, seed, seconds, scattering, er_order, per_room, er_images, tail_edt,
-               tail_buildup, neighbour_tails, reverb, tail_beam, min_scattering) -> list:
-    """:func:`bench_fidelity`'s rows, one per case of ``todo``."""
-    from sonicverse_core.progress import progress
-
+        if not todo and min_scattering:
+            raise ConfigError("the sealed rooms are compared with the mass law, not the peer: no --min-scattering")
     cases = []
     for name, spec, corners, H, mats, src, lis, dims in progress(todo, len(todo), "rooms"):
         walls, floor, ceiling = mats[:3]
         h_peer, h, t_peer, t_bake, t_render = [], [], 0.0, 0.0, 0.0
         for k in range(realisations):
             t0 = time.perf_counter()
-            h_peer.append(_pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed + k, *mats[3:]))
+            h_peer.append(_pra_polygon(corners, H, walls, floor, ceiling, src, lis, rays, seed + k, *mats[3:],
+                                       min_scattering=min_scattering))
             t_peer += (time.perf_counter() - t0) / realisations
             y, tb, tr = _ours(spec, src, lis, seconds, scattering, er_order, per_room, er_images, realisation=k,
                               tail_edt=tail_edt, tail_buildup=tail_buildup, neighbour_tails=neighbour_tails,
@@ -478,7 +460,22 @@ def _run_cases(todo, realisations, rays, seed, seconds, scattering, er_order, pe
         if dims is not None:
             row["theory"] = _theory_shoebox(dims, walls, floor, ceiling, src, lis)
         cases.append(row)
-    return cases
+    sealed = (_sealed(scattering, per_room, tail_edt, tail_buildup, reverb, tail_beam)
+              if (case is None or "sealed" in case.lower()) and not min_scattering else None)
+    met = {k: sum(c["vs_pyroomacoustics"][k]["met"] for c in cases) for k in TARGETS}
+    out = {"bench": "fidelity", "peer": "pyroomacoustics hybrid (ISM order 3 + ray tracing, "
+           f"{rays} rays, receiver radius 0.5 m, seed {seed})", "realisations": realisations, "sample_rate": FS, "scattering": scattering, "er_order": er_order,
+           "er_images": er_images, "per_room": per_room, "tail_edt": tail_edt,
+           "tail_buildup": tail_buildup, "tail_beam": tail_beam,
+           "neighbour_tails": neighbour_tails, "reverb": reverb, "min_scattering": min_scattering, "case": case,
+           "onset": f"the direct sound's time along the shortest open path (the peer's {PRA_DELAY} samples later)",
+           "cases": cases,
+           "sealed": sealed,
+           "targets_met": {k: f"{v}/{len(cases)}" for k, v in met.items()}}
+    if plot:
+        _plot(cases, plot, realisations)
+        out["plot"] = plot
+    return out
 
 
 def _plot(cases: list, path: str, realisations: int = 1) -> None:
