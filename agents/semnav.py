@@ -26,6 +26,9 @@ Per step:
   farther than that (``LEVEL_REJECT``) is passed over until ``LATE`` of the episode has gone;
 * otherwise it explores: the frontier (seen floor beside unmapped space) cheapest by path length plus its
   angle off the bearing, re-chosen every ``REPLAN`` steps;
+* a path that the dilated map sends the long way round (a doorway shut by a door leaf's dilation, unmapped space
+  still open round it) is taken on the map dilated less where that is ``SQUEEZE_M`` shorter
+  (:meth:`SemNavAgent._squeeze`);
 * where the sound never stops (AudioGoal: no stop action), it also keeps hearing: the turn's bearing and level and a
   level every ``WINDOW`` audible steps while driving go into the ``gan`` baseline's probability grid of where the
   goal is (:class:`agents.gan.GanAgent`, ``self.post``: the levels' shared-error Gaussian on the path distance, the
@@ -142,6 +145,7 @@ class SemNavAgent(MapAgent):
     GAP_W = 4.0  # m of driving worth 1 m nearer the object at the stop
     SWITCH_M = 2.0  # m better another sighting must score to be taken instead of the one it drives to
     DILATE_LESS = True  # no frontier on the dilated map: look again on maps dilated less before wandering
+    SQUEEZE_M = 1.5  # m: take the path on a map dilated less when it is this much shorter (None: never; session 64)
     LEVEL_REJECT = 1.0  # |ln(distance / the level's)| beyond which a sighting is passed over (2.5 sigma of the fit)
     LATE = 0.7  # after this share of the steps, every sighting counts
     LEVEL_M = 3.0  # m of path a sighting costs per unit of |ln(its distance from the start / the level's)|
@@ -287,9 +291,24 @@ class SemNavAgent(MapAgent):
             if len(cand):
                 goal = cand[int(self.rng.integers(len(cand)))]
         cells = grid_trace(pred, self.SIZE, s, goal) if goal is not None else None
+        if cells and self.SQUEEZE_M is not None:
+            cells = self._squeeze(p, goal, dist, cells)
         self.path = self._xy(cells) if cells else np.array([p])
         self.k = min(2, len(self.path) - 1)
         self.since_plan = 0
+
+    def _squeeze(self, p, goal, dist: np.ndarray, cells: list) -> list:
+        """The path to ``goal`` on the map dilated less (``INFLATE - 1`` cells, then none) where it is ``SQUEEZE_M``
+        shorter than ``cells`` (``dist``'s path); else ``cells``. An open door's leaf, seen edge-on in the doorway,
+        dilated with the frame can shut the doorway on the dilated map while unmapped space still offers a way round:
+        the robot turned back in the doorway of the room it was driving to and spent its last 400 steps on the way
+        round (validation episode 43 of SemanticAudioNav, session 64)."""
+        d0 = float(dist[goal[0], goal[1]])
+        for k in range(self.INFLATE - 1, -1, -1):
+            s, _, d, pred = self._reachable(p, k)
+            if np.isfinite(d[goal[0], goal[1]]) and (d0 - float(d[goal[0], goal[1]])) * self.CELL > self.SQUEEZE_M:
+                return grid_trace(pred, self.SIZE, s, goal) or cells
+        return cells
 
     def _frontier(self, blocked: np.ndarray, dist: np.ndarray):
         """The frontier cell (seen floor beside unmapped space) at least ``FRONTIER_MIN`` away cheapest by path
@@ -442,8 +461,10 @@ class SemNavAgent(MapAgent):
 class RouteTeacher(SemNavAgent):
     """sem-nav as the shipped route policies' README figures were measured with (``train --map route``: ``av-nav``,
     ``savi`` and ``multitask`` on SemanticAudioNav, ``av-nav`` on AudioGoal) and, but for session 53's AudioGoal
-    grid, as they were trained on it: it wanders where the dilated map shuts it in (before session 55). Its drawn
+    grid, as they were trained on it: it wanders where the dilated map shuts it in (before session 55) and keeps the
+    dilated map's way round a doorway it shuts (before session 64). Its drawn
     route is those policies' input, so a changed teacher would change what every shipped checkpoint sees; a
     retrain on :class:`SemNavAgent` would carry the fix to them."""
 
     DILATE_LESS = False
+    SQUEEZE_M = None

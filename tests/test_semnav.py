@@ -223,3 +223,29 @@ def test_sem_nav_leaves_a_pocket_that_its_dilated_map_shuts():
     old._choose(np.zeros(2))
     end = old._cell(old.path[-1])
     assert old.mode == "explore" and abs(end - c).max() < 10, end  # a random cell of the room
+
+
+def test_sem_nav_squeezes_through_a_doorway_its_dilated_map_shuts_instead_of_going_round():
+    """A 2 m room whose +x wall has a 0.4 m doorway (shut on the map dilated by the robot's 2 cells, 2 cells open on
+    the map dilated by 1) and whose -x wall is open wide onto unmapped space, through which the dilated map still
+    finds a way round to a goal just past the doorway: about 6 m against 1.3 m. sem-nav takes the doorway (how
+    validation episode 43 turned back in the bathroom's doorway and spent 400 steps on the way round); the route
+    policies' teacher keeps the way round (:class:`agents.semnav.RouteTeacher`)."""
+    from agents.semnav import RouteTeacher, SemNavAgent
+
+    def agent(base):
+        cls = type("To", (base,), {"_sighting": lambda self, blocked, dist: np.array([c + 13, c])})
+        ag, _ = _room_agent(cls)
+        ag.occ[c + 10, c - 3:c + 3] = 2
+        ag.occ[c + 10, c - 2:c + 2] = 0  # the 0.4 m doorway
+        ag.occ[c - 10, c - 5:c + 6] = 0  # the wide opening on the far side
+        ag.floor[c + 10:c + 14, c - 2:c + 2] = True
+        ag._choose(np.zeros(2))
+        assert ag.mode == "approach"
+        return np.array([ag._cell(q) for q in ag.path])
+
+    c = SemNavAgent.SIZE // 2
+    new, old = agent(SemNavAgent), agent(RouteTeacher)
+    assert new[:, 0].min() >= c - 1 and tuple(new[-1]) == (c + 13, c), new  # straight through the doorway
+    assert old[:, 0].min() < c - 10, old  # out through the far side and round the room
+    assert len(new) * SemNavAgent.CELL < 2.0 < len(old) * SemNavAgent.CELL
