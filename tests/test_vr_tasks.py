@@ -138,7 +138,10 @@ def test_bench_vr_task_runs_its_jack_server_at_the_period_asked(cli):
             "--json")
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout.strip().splitlines()[-1])
-    assert d["jack_period"] == 512 and d["callbacks"] >= 0.5 * 48000 / 256 * 0.8 and d["callback_errors"] == 0
+    assert d["jack_period"] == 512 and d["callback_errors"] == 0 and d["window_frames"] == 24000
+    # the window's frames, all in 256-frame callbacks; short of the window only by cycles the server was late for
+    # (its dummy driver skips them; on a loaded machine), which then show as xruns
+    assert d["frames"] == 256 * d["callbacks"] and (d["frames"] >= 0.9 * 24000 or d["xruns"] >= 1), d
     assert d["cycle_blocks"] == 2 and d["platform"]["period_ms"] == pytest.approx(10.667, abs=1e-3)
     assert d["xruns"] <= d["xrun_blocks"] <= 2 * d["xruns"]
     # where the window's CPU went: the callback's CPU time never exceeds its wall time, and the busiest threads are

@@ -22,6 +22,11 @@ from app.audio_rt import config as C
 from app.audio_rt.sched import NICE_ROBOTS, NICE_SUPERVISOR, favour_this_thread
 
 
+def stall_seconds(cfg) -> float:
+    """How long the stream may go without a callback before the supervisor calls the device lost."""
+    return max(0.5, 50 * cfg.block / cfg.sample_rate)
+
+
 def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str = "all") -> None:
     """Worker entry point (``shared_buf`` is given in thread mode, ``shm_path`` in process mode); ``role``: 'all'
     (the callback renders the user and the robots) or 'user' (the robots render in :func:`run_robots`)."""
@@ -98,7 +103,7 @@ def run(conn, cfg, scene_setup, shm_path: str | None, shared_buf=None, role: str
 
         sys.setswitchinterval(0.0005)  # the callback gets the GIL back within 0.5 ms after a GIL-free kernel
     last_count, last_change = -1, time.monotonic()
-    stall = max(0.5, 50 * cfg.block / cfg.sample_rate)
+    stall = stall_seconds(cfg)
     while True:
         if _stop_asked(conn, 0.05):
             stream.stop()
