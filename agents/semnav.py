@@ -276,7 +276,14 @@ class SemNavAgent(MapAgent):
         the map, its obstacles dilated by the robot's radius, shuts the robot in a pocket with no frontier (a gap
         between furniture narrower than the dilation, or bump marks), it looks for frontiers on the map dilated less
         (``DILATE_LESS``) before it wanders, and then wanders on the least dilated map (the one it looked on last)."""
-        s, blocked, dist, pred = self._reachable(p, self.INFLATE)
+        plans: dict = {}  # this plan's searches by dilation (the squeeze below asks for the same maps again)
+
+        def reach(k: int):
+            if k not in plans:
+                plans[k] = self._reachable(p, k)
+            return plans[k]
+
+        s, blocked, dist, pred = reach(self.INFLATE)
         goal, self.mode = self._sighting(blocked, dist), "approach"
         if goal is None:
             self.target, self.mode = None, "explore"
@@ -284,7 +291,7 @@ class SemNavAgent(MapAgent):
             for k in range(self.INFLATE - 1, -1, -1) if self.DILATE_LESS else ():
                 if goal is not None:
                     break
-                s, blocked, dist, pred = self._reachable(p, k)
+                s, blocked, dist, pred = reach(k)
                 goal = self._frontier(blocked, dist)
         if goal is None:  # nothing left to explore on the map: wander to a random reachable cell (of the last map)
             cand = np.argwhere(np.isfinite(dist) & (dist * self.CELL >= self.FRONTIER_MIN))
@@ -292,20 +299,21 @@ class SemNavAgent(MapAgent):
                 goal = cand[int(self.rng.integers(len(cand)))]
         cells = grid_trace(pred, self.SIZE, s, goal) if goal is not None else None
         if cells and self.SQUEEZE_M is not None:
-            cells = self._squeeze(p, goal, dist, cells)
+            cells = self._squeeze(goal, dist, cells, reach)
         self.path = self._xy(cells) if cells else np.array([p])
         self.k = min(2, len(self.path) - 1)
         self.since_plan = 0
 
-    def _squeeze(self, p, goal, dist: np.ndarray, cells: list) -> list:
+    def _squeeze(self, goal, dist: np.ndarray, cells: list, reach) -> list:
         """The path to ``goal`` on the map dilated less (``INFLATE - 1`` cells, then none) where it is ``SQUEEZE_M``
-        shorter than ``cells`` (``dist``'s path); else ``cells``. An open door's leaf, seen edge-on in the doorway,
+        shorter than ``cells`` (``dist``'s path); else ``cells``. ``reach(k)``: :meth:`_reachable` on the map dilated
+        ``k`` cells from the robot's cell, each searched once a plan. An open door's leaf, seen edge-on in the doorway,
         dilated with the frame can shut the doorway on the dilated map while unmapped space still offers a way round:
         the robot turned back in the doorway of the room it was driving to and spent its last 400 steps on the way
         round (validation episode 43 of SemanticAudioNav, session 64)."""
         d0 = float(dist[goal[0], goal[1]])
         for k in range(self.INFLATE - 1, -1, -1):
-            s, _, d, pred = self._reachable(p, k)
+            s, _, d, pred = reach(k)
             if np.isfinite(d[goal[0], goal[1]]) and (d0 - float(d[goal[0], goal[1]])) * self.CELL > self.SQUEEZE_M:
                 return grid_trace(pred, self.SIZE, s, goal) or cells
         return cells

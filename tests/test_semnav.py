@@ -213,12 +213,23 @@ def test_sem_nav_leaves_a_pocket_that_its_dilated_map_shuts():
     gap on the map dilated less, instead of wandering to random cells inside the room (how validation episode 44 of
     SemanticAudioNav drove 5.6 m in its 500 steps before session 55). The route policies' teacher keeps the old
     way (:class:`agents.semnav.RouteTeacher`: the route the shipped checkpoints learnt to read)."""
-    from agents.semnav import RouteTeacher
+    from agents.semnav import RouteTeacher, SemNavAgent
 
-    ag, c = _room_agent()
+    searched = []
+
+    class Counted(SemNavAgent):
+        def _reachable(self, p, inflate=2):
+            searched.append(inflate)
+            return super()._reachable(p, inflate)
+
+    ag, c = _room_agent(Counted)
     ag._choose(np.zeros(2))
     end = ag._cell(ag.path[-1])
     assert ag.mode == "explore" and end[0] > c + 10, end  # beyond the wall
+    # the frontier found on a map dilated less, the squeeze then asks for the maps dilated 1 and 0 cells again:
+    # each dilation is searched once a plan
+    assert searched[0] == SemNavAgent.INFLATE and sorted(searched, reverse=True) == searched, searched
+    assert len(searched) == len(set(searched)) and searched[-1] == 0, searched
     old, c = _room_agent(RouteTeacher)
     old._choose(np.zeros(2))
     end = old._cell(old.path[-1])
