@@ -103,7 +103,7 @@ def _leave_jack(sd, timeout: float = 30.0) -> None:
     done.join(timeout)
     if done.is_alive():
         sd._initialized = 0
-        print(f"\nconftest: PortAudio's Pa_Terminate did not return in {timeout:.0f} s (jack_client_close hung); "
+        print(f"\nconftest: PortAudio's Pa_Terminate did not return in {timeout:g} s (jack_client_close hung); "
               f"abandoned it and stopped the JACK server", file=sys.stderr)
 
 
