@@ -453,7 +453,7 @@ def test_a_live_window_without_the_stream_is_an_error_not_zero_xruns(private_jac
         assert eng.wait_callbacks(20) >= 20
         eng.mark()
         assert eng.wait_callbacks(10) >= 10
-        _check_stream(eng, eng.telemetry(), 0.04)  # 10 blocks of 256 frames: more than 90% of 0.04 s
+        assert _check_stream(eng, eng.telemetry(), 0.04) == 1920  # 10 blocks of 256 frames: over 90% of 0.04 s
         with pytest.raises(DeviceError, match=r"played \d+ of the window's 48000 frames \(engine running\) and "
                                               r"the audio server reported no late cycle"):
             _check_stream(eng, {**eng.telemetry(), "xrun_blocks": 0}, 1.0)

@@ -223,7 +223,7 @@ def live_audio_task(task: str, seconds: float = 60.0, scene: str = "builtin:apar
             **_live_audio(scene, seconds, task=t, realtime=True, period=period)}
 
 
-def _check_stream(engine, tel: dict, seconds: float) -> None:
+def _check_stream(engine, tel: dict, seconds: float) -> int:
     """A window in which the stream was lost or stopped calling back is an error, not a run without xruns: the
     engine must still be running (a lost device or a dead worker is raised with the engine's news), the stream must
     still call back after the window, and it must have played at least 90% of the window's frames unless the audio
@@ -231,7 +231,7 @@ def _check_stream(engine, tel: dict, seconds: float) -> None:
     up: it restarts its clock and the cycles it slept through are never run (jack2's ``JackTimedDriver``), so on a
     machine that starves it of the CPU the window holds fewer cycles than its length; each such cycle reaches the
     stream as an xrun, and the xrun count, not the frame count, is then the measurement (the JSON's ``frames`` and
-    ``window_frames`` show what was lost)."""
+    ``window_frames`` show what was lost). Returns the window's length in frames."""
     from app.audio_rt.worker import stall_seconds
     from sonicverse_core.errors import DeviceError
 
@@ -252,6 +252,7 @@ def _check_stream(engine, tel: dict, seconds: float) -> None:
         raise DeviceError(f"the live stream played {tel['frames']} of the window's {int(want)} frames (engine "
                           f"{tel['state']}) and the audio server reported no late cycle: its xrun count would not "
                           f"be a measurement")
+    return int(want)
 
 
 def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, period: int = 256) -> dict:
@@ -279,8 +280,7 @@ def _live_audio(scene: str, seconds: float, task=None, realtime: bool = False, p
             while time.perf_counter() - t0 < seconds:
                 s.frame()
             tel = s.audio.telemetry()
-            _check_stream(s.audio.engine, tel, seconds)
-            window = int(seconds * s.audio.engine.cfg.sample_rate)
+            window = _check_stream(s.audio.engine, tel, seconds)
             platform = probe.result({os.getpid(): "main", srv.proc.pid: "jackd", **s.audio.engine.threads()})
             platform["supervisor_scheduling"] = s.audio.engine.info.get("supervisor_scheduling")
             platform["callback_scheduling"] = tel["callback_scheduling"]
