@@ -1,6 +1,7 @@
 """Real-time audio pipeline: lock-free structures, pose interpolation, and the duplex stream on a real clocked
 JACK server (dummy backend) with our output wired to our input."""
 import dataclasses
+import glob
 import json
 
 import numpy as np
@@ -42,11 +43,44 @@ def test_ring_shared_between_two_mappings_of_one_block():
     L.add("h", 1, np.int64)
     a = SharedBlock(L.size)
     b = SharedBlock(L.size, a.path, create=False)
-    a.unlink()  # both keep their mapping
+    a.release()  # both keep their mapping
     wa, rb = L.views(a.buf), L.views(b.buf)
     reader = Ring(rb["d"], rb["h"])  # a reader starts at the current head
     Ring(wa["d"], wa["h"]).write(np.ones((1, 10), np.float32))
     assert np.array_equal(reader.read(), np.ones((1, 10)))
+
+
+def test_the_shared_block_has_no_name_and_a_worker_maps_it_by_its_descriptor():
+    """A session killed at any moment (session 65: ``kill -9`` while a worker started) must leave nothing in
+    /dev/shm: the block is never named, and a worker started with its descriptor maps the same memory."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    def named() -> list:
+        return [p for d in ("/dev/shm", tempfile.gettempdir()) for p in Path(d).glob("sonicverse-audio*")]
+
+    before = named()
+    a = SharedBlock(4096)
+    assert named() == before == []
+    np.frombuffer(a.buf, np.uint8)[:4] = (1, 2, 3, 4)
+    code = ("import sys; import numpy as np; from app.audio_rt.shared import SharedBlock; "
+            "b = SharedBlock(4096, sys.argv[1], create=False); v = np.frombuffer(b.buf, np.uint8); "
+            "print(list(v[:4])); v[4] = 9")
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", code, a.path], pass_fds=(a.fd,), cwd=root, capture_output=True,
+                         text=True, env={**os.environ, "PYTHONPATH": str(root)})
+    assert out.returncode == 0 and out.stdout.split("\n")[0] == "[1, 2, 3, 4]", out.stderr[-500:]
+    assert a.buf[4] == 9  # the worker's write is the creator's memory
+    # without the descriptor kept, the path names nothing there (a worker gets the block only as ``_spawn`` gives it)
+    out = subprocess.run([sys.executable, "-c", code, a.path], cwd=root, capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(root)})
+    assert not (out.returncode == 0 and out.stdout.split("\n")[0] == "[1, 2, 3, 4]")
+    a.release()
+    assert a.fd is None and a.buf[4] == 9  # the mapping outlives the descriptor
+    assert set(shm.iterdir()) == before
 
 
 def test_seqlock_never_returns_a_torn_frame():

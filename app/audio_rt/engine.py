@@ -97,7 +97,7 @@ class AudioEngine:
                         self._conn.send(("go",))
                         msg = self._wait(cfg.start_timeout)
         finally:
-            self._block.unlink()  # all sides have it mapped; nothing is left in /dev/shm whatever happens
+            self._block.release()  # the workers have it mapped (it never had a name: nothing to leave behind)
         if self._rconn is not None and (rmsg is None or rmsg[0] != "ready"):
             self._kill()
             self.state = "failed"
@@ -124,9 +124,10 @@ class AudioEngine:
         """A worker in a fresh interpreter (not fork: the caller may hold GL contexts or threads; not
         multiprocessing's spawn, which re-imports the caller's main script), talking over a socket pair."""
         a, b = socket.socketpair()
+        keep = (b.fileno(),) if self._block.fd is None else (b.fileno(), self._block.fd)  # the block by its number
         proc = subprocess.Popen(
             [sys.executable, "-c", "import app.audio_rt.worker as w; w.main()", str(b.fileno())],
-            pass_fds=(b.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+            pass_fds=keep, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
             env={**os.environ, **_SINGLE_THREADED, **HEAP_ENV})
         b.close()
         conn = Connection(a.detach())

@@ -1,7 +1,7 @@
 """Lock-free structures shared between the main loop and the audio callback, over one flat memory block.
 
-The block is a file-backed ``mmap`` (in /dev/shm where it exists) when the audio runs in its own process, or a
-plain ``bytearray`` when it runs in a thread; both sides build the same numpy views over it with :class:`Layout`.
+The block is an ``mmap`` of an anonymous memory file (:class:`SharedBlock`: nothing named in /dev/shm) when the
+audio runs in its own process, or a plain ``bytearray`` when it runs in a thread; both sides build the same numpy views over it with :class:`Layout`.
 
 * :class:`Ring`: single-producer single-consumer ring of float32 frames. The producer writes the samples, then
   publishes a monotonically increasing frame counter (one aligned int64 store); it never waits. Each consumer keeps
@@ -45,30 +45,52 @@ class Layout:
 
 
 class SharedBlock:
-    """A zero-filled block of ``size`` bytes that another process can map by ``path``; ``path=None`` -> private."""
+    """A zero-filled block of ``size`` bytes that another process can map by ``path``; ``path=None`` -> private.
+
+    The block has no name in any file system: an anonymous memory file (``memfd_create``; where the kernel lacks it,
+    a file in /dev/shm removed the moment it is made), known by its descriptor :attr:`fd`. Its ``path`` is
+    ``/proc/self/fd/FD``: a worker started with that descriptor kept (``Popen(pass_fds=...)``, the same number)
+    maps it by that path. So a session killed at any moment, even while a worker starts, leaves nothing behind; the
+    memory goes when its last mapping does. :meth:`release` closes the creating side's descriptor once the workers
+    have mapped the block."""
 
     def __init__(self, size: int, path: str | None = None, create: bool = True, private: bool = False):
-        self.size, self.path, self._owner = size, None, False
+        self.size, self.path, self.fd = size, None, None
         if private:
             self.buf = bytearray(size)
             return
         if create:
-            d = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else tempfile.gettempdir()
-            fd, path = tempfile.mkstemp(prefix="sonicverse-audio-", dir=d)
+            fd = _anonymous_file()
             os.ftruncate(fd, size)
-            self._owner = True
+            self.fd, path = fd, f"/proc/self/fd/{fd}"
         else:
             fd = os.open(path, os.O_RDWR)
         try:
             self._mm = mmap.mmap(fd, size)
         finally:
-            os.close(fd)
+            if not create:
+                os.close(fd)
         self.path, self.buf = path, self._mm
 
-    def unlink(self) -> None:
-        """Remove the file (both sides keep their mappings)."""
-        if self._owner and self.path and os.path.exists(self.path):
-            os.unlink(self.path)
+    def release(self) -> None:
+        """Close the creating side's descriptor (the mappings keep the memory): after every worker has mapped it."""
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
+def _anonymous_file() -> int:
+    """A descriptor of a memory file with no name left on any file system (close-on-exec: a worker gets it by
+    ``pass_fds`` only)."""
+    if hasattr(os, "memfd_create"):
+        try:
+            return os.memfd_create("sonicverse-audio", os.MFD_CLOEXEC)
+        except OSError:  # a kernel without it
+            pass
+    d = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else tempfile.gettempdir()
+    fd, path = tempfile.mkstemp(prefix="sonicverse-audio-", dir=d)
+    os.unlink(path)
+    return fd
 
 
 class Ring:
