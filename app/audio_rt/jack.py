@@ -53,7 +53,23 @@ class JackServer:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(timeout=10)
+        if self.proc is not None:
+            self._remove_client_futexes()
         self.proc = None
+
+    def _remove_client_futexes(self) -> None:
+        """Remove what the stopped server left in /dev/shm of its clients' wake-up words. jack2 on Linux keeps one
+        per client (``jack_sem.UID_SERVER_CLIENT``, its ``JackLinuxFutex``) and removes it when the client closes
+        while the server runs; a server stopped under a client (a device that vanishes, a test that stops it) leaves
+        them, a dozen bytes each, for good. They are this server's alone (its name), and it has exited."""
+        import glob
+        import os
+
+        for path in glob.glob(f"/dev/shm/jack_sem.{os.getuid()}_{glob.escape(self.name)}_*"):
+            try:
+                os.unlink(path)
+            except OSError:  # gone already, or not ours to remove
+                pass
 
     def __enter__(self):
         return self
