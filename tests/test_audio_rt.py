@@ -669,6 +669,33 @@ def test_a_jack_server_does_not_outlive_a_killed_user(tmp_path):
         time.sleep(0.05)
 
 
+def test_a_killed_sessions_jack_leftovers_are_swept_when_the_next_server_starts(private_jack):
+    """A session killed with SIGKILL while its stream ran leaves its server's client futex files in /dev/shm (its
+    server, stopped by pdeathsig under the client, cannot remove them; seen with ``bench vr``). The next server we
+    start removes those of servers whose owner is gone, and no one else's."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid, uid = int(dead.stdout), os.getuid()
+    shm = Path("/dev/shm")
+    left = shm / f"jack_sem.{uid}_sv-bench-{dead_pid}_sonicverse-1"
+    left_k = shm / f"jack_sem.{uid}_sv-priv-{dead_pid}-3_sonicverse-2"
+    alive = shm / f"jack_sem.{uid}_sv-bench-{os.getpid()}_sonicverse-3"  # a live session's: in use
+    other = shm / f"jack_sem.{uid}_studio_ardour-{dead_pid}"  # not our naming: someone else's server
+    for p in (left, left_k, alive, other):
+        p.write_bytes(bytes(12))
+    try:
+        private_jack()
+        assert not left.exists() and not left_k.exists()
+        assert alive.exists() and other.exists()
+    finally:
+        for p in (left, left_k, alive, other):
+            p.unlink(missing_ok=True)
+
+
 def test_a_hung_portaudio_terminate_does_not_hang_the_test_run(capsys):
     """The session fixture's PortAudio teardown (``conftest._leave_jack``): jack2's jack_client_close can deadlock
     (jackaudio/jack2 issue 395), so Pa_Terminate runs in a thread of its own; one that has not returned by the

@@ -34,6 +34,7 @@ class JackServer:
             exe, "-n", name, *([] if realtime else ["--no-realtime"]), "-d", "dummy", "-r", str(rate), "-p",
             str(period), "-P", str(playback), "-C", str(capture)]
         self.proc = None
+        sweep_stale_futexes()
         self.start()
 
     def start(self) -> None:
@@ -76,6 +77,35 @@ class JackServer:
 
     def __exit__(self, *exc):
         self.stop()
+
+
+def sweep_stale_futexes() -> list[str]:
+    """Remove the client futex files (see :meth:`JackServer._remove_client_futexes`) of servers named by our
+    convention, ``sv-KIND-PID[-N]``, whose owner PID is gone: what a session killed with SIGKILL left (its server
+    gets SIGTERM by pdeathsig, under its clients). Another live process's, and any other server's, are left alone.
+    Returns the paths removed."""
+    import glob
+    import os
+    import re
+
+    gone = []
+    for path in glob.glob(f"/dev/shm/jack_sem.{os.getuid()}_sv-*"):
+        m = re.fullmatch(rf"jack_sem\.{os.getuid()}_sv-[a-z]+-(\d+)(?:-\d+)?_.+", os.path.basename(path))
+        if m is None:
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+            continue  # its owner lives (or the PID was reused: leave it)
+        except ProcessLookupError:
+            pass
+        except (PermissionError, OverflowError):
+            continue
+        try:
+            os.unlink(path)
+            gone.append(path)
+        except OSError:
+            pass
+    return gone
 
 
 _client_name = None  # PortAudio keeps the pointer: the bytes must outlive the stream
