@@ -390,6 +390,23 @@ def test_devices_that_do_not_exist_or_cannot_do_it_give_one_clear_error(jack):
         _engine(sample_rate=44100).start()
 
 
+def test_a_second_engine_in_the_same_process_leaves_the_first_ones_stream_running(jack):
+    """``mode="thread"`` runs the stream in this process. Naming the JACK client re-initialised PortAudio at every
+    start, which closed the streams the process had open: the first engine's stopped calling back for good, its
+    state still 'running', and nothing reported (session 67)."""
+    a, b = _engine(mode="thread", mic=False), _engine(mode="thread", mic=False)
+    try:
+        ia = a.start()
+        assert a.wait_callbacks(20) >= 20
+        ib = b.start()
+        assert ib["jack_client"] == ia["jack_client"]  # one PortAudio, one client, two streams on it
+        assert b.wait_callbacks(20) >= 20
+        assert a.wait_callbacks(20, timeout=5.0) >= 20, (a.poll(), a.telemetry())
+    finally:
+        b.stop()
+        a.stop()
+
+
 def test_mono_output_device_is_refused(private_jack):
     private_jack(playback=1)
     with pytest.raises(DeviceError, match="1 output channel; binaural audio needs 2"):

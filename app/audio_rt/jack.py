@@ -112,18 +112,46 @@ _client_name = None  # PortAudio keeps the pointer: the bytes must outlive the s
 
 
 def name_jack_client(name: str) -> None:
-    """Name the JACK client of the streams this process opens (PortAudio re-initialised to take it)."""
+    """Name the JACK client of the streams this process opens.
+
+    PortAudio takes the name only when it initialises, which ``import sounddevice`` does. So the name is set before
+    that import where this process has not made it yet (an audio worker: a fresh interpreter), through the library
+    sounddevice will load. Where it has, PortAudio is re-initialised to take the name, which closes every stream the
+    process has open, so that happens once per process: a second engine of a process (``mode="thread"``) keeps the
+    first's name and its stream (it used to stop the first engine's stream, which then never called back again)."""
     global _client_name
+    import sys
+
+    want = name.encode()[:60]
+    if _client_name is not None:  # named already: renaming would close the streams it has open
+        return
+    if "sounddevice" not in sys.modules:
+        from ctypes.util import find_library
+
+        found = find_library("portaudio")  # what sounddevice loads first on POSIX
+        if found is not None and _set_client_name(found, want):
+            import sounddevice as sd
+
+            if sd._libname == found:
+                return  # initialised once, with the name
     import sounddevice as sd
 
-    _client_name = name.encode()[:60]
+    if _set_client_name(sd._libname, want):
+        sd._terminate()
+        sd._initialize()
+
+
+def _set_client_name(libname: str, name: bytes) -> bool:
+    """``PaJack_SetClientName`` in the PortAudio library ``libname`` (False: one without JACK support)."""
+    global _client_name
     try:
-        lib = ctypes.CDLL(sd._libname)
-        lib.PaJack_SetClientName(ctypes.c_char_p(_client_name))
-    except (OSError, AttributeError):  # a PortAudio without JACK support: nothing to name
-        return
-    sd._terminate()
-    sd._initialize()
+        lib = ctypes.CDLL(libname)
+        fn = lib.PaJack_SetClientName
+    except (OSError, AttributeError):
+        return False
+    _client_name = name  # before the call: PortAudio keeps the pointer
+    fn(ctypes.c_char_p(_client_name))
+    return True
 
 
 def _jack(*args: str) -> str:
