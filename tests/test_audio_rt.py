@@ -407,6 +407,43 @@ def test_a_second_engine_in_the_same_process_leaves_the_first_ones_stream_runnin
         a.stop()
 
 
+_DOORS_UNDER_A_THREAD_STREAM = """
+import gc
+from app.audio_rt.config import AudioConfig, AudioScene
+from app.audio_rt.engine import AudioEngine
+from app.audio_rt.loopback import random_sources
+from sonicverse_core.acoustics import coupling
+
+srcs, head = random_sources("builtin:apartment", 2, 0)
+eng = AudioEngine(AudioConfig(mode="thread", mic=False), AudioScene("builtin:apartment", sources=srcs, head=head))
+eng.start()
+assert eng.wait_callbacks(10) >= 10
+made = coupling._SPLITS[0]
+for shut in (0.0, 1.0):  # every door shut, then open: the coupled decay is made again in the callback each time
+    eng.set_poses(head, doors=[shut] * len(eng.scene.doors))
+    assert eng.wait_callbacks(20) >= 20, eng.poll()
+eng.stop()
+print(coupling._SPLITS[0] - made, eng.events, gc.collect() >= 0)
+"""
+
+
+def test_doors_moving_under_a_stream_in_this_process_leave_the_interpreter_intact(jack):
+    """``mode="thread"``: a door that moves makes the coupled rooms' decay again in the audio server's thread
+    (``np.linalg.inv`` and ``eigh``). Multithreaded OpenBLAS overran that thread's small stack there and wrote over
+    the interpreter's memory: the next garbage collection crashed (SIGSEGV, session 67). The engine runs the
+    process's BLAS on one thread while such a stream runs."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", _DOORS_UNDER_A_THREAD_STREAM], cwd=root, capture_output=True,
+                         text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(root)})
+    assert out.returncode == 0, (out.returncode, out.stderr[-1500:])
+    assert out.stdout.split() == ["2", "[]", "True"], out.stdout  # both door changes made it again, no error
+
+
 def test_mono_output_device_is_refused(private_jack):
     private_jack(playback=1)
     with pytest.raises(DeviceError, match="1 output channel; binaural audio needs 2"):

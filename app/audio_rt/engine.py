@@ -35,6 +35,38 @@ _SINGLE_THREADED = {k: "1" for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", 
                                      "NUMBA_NUM_THREADS")}
 
 
+class _OneBlasThread:
+    """Thread mode's counterpart of :data:`_SINGLE_THREADED`: the process's BLAS libraries run one thread while any
+    stream of this process runs its DSP in the audio server's thread (threadpoolctl; the limit held by a count, so
+    that the first of two engines to stop does not lift it under the second). Multithreaded OpenBLAS's LAPACK
+    (``np.linalg.inv``, ``eigh``: the coupled rooms' decay, made again in the callback when a door moves) overran
+    the small stack of a JACK client's thread and wrote over the interpreter's memory: the process crashed later
+    (SIGSEGV in the garbage collector; measured, session 67). With one thread it stays within it."""
+
+    _lock = threading.Lock()
+    _held = 0
+    _limits = None
+
+    @classmethod
+    def hold(cls) -> None:
+        from threadpoolctl import threadpool_limits
+
+        with cls._lock:
+            if cls._held == 0:
+                cls._limits = threadpool_limits(limits=1, user_api="blas")
+            cls._held += 1
+
+    @classmethod
+    def release(cls) -> None:
+        with cls._lock:
+            if cls._held == 0:
+                return
+            cls._held -= 1
+            if cls._held == 0:
+                cls._limits.restore_original_limits()
+                cls._limits = None
+
+
 class AudioEngine:
     def __init__(self, cfg: AudioConfig = AudioConfig(), scene: AudioScene = AudioScene()):
         if scene.spec is not None and not scene.doors:
@@ -51,6 +83,7 @@ class AudioEngine:
         self.state = "stopped"
         self.events: list[str] = []
         self._proc = self._thread = self._conn = self._block = self._rproc = self._rconn = None
+        self._blas = False
         self._errors_seen = 0
         self._t0 = time.monotonic()
         self._door_values = np.array(scene.door_open if scene.door_open else [1.0] * len(scene.doors), float)
@@ -73,6 +106,8 @@ class AudioEngine:
         rmsg = msg = None
         try:
             if thread:
+                _OneBlasThread.hold()  # before the stream's thread can call LAPACK (released by _kill)
+                self._blas = True
                 parent, child = mp.Pipe()
                 from app.audio_rt.worker import run
 
@@ -177,6 +212,9 @@ class AudioEngine:
                     proc.wait(timeout=3.0)
         if self._thread is not None:
             self._thread.join(timeout=3.0)
+        if self._blas:
+            _OneBlasThread.release()
+            self._blas = False
         self._proc = self._rproc = self._thread = self._conn = self._rconn = None
 
     def _wait(self, timeout: float, conn=None, proc=None):
