@@ -97,6 +97,21 @@ def test_a_room_lower_than_1_5_m_still_gets_a_probe_under_its_ceiling():
     assert 0.6 <= probes[0].position[2] <= 0.9 + 1e-6  # float32 once read back from the bake cache
 
 
+@pytest.mark.parametrize("height", [0.2, 0.4])
+def test_a_room_lower_than_the_robot_still_gets_a_probe_and_a_reverb(height):
+    """The robot's grid finds no floor under a ceiling lower than the robot (0.5 m: its floor rays start above it),
+    so such a room had no probe, no early reflections and no late reverb (session 67)."""
+    from sonicverse_core.acoustics.renderer import AcousticRenderer
+
+    scene = load_scene(f"shoebox:3x3x{height}")
+    probes = scene_probes(scene)
+    assert probes is not None and len(probes) == 1
+    p = probes[0].position
+    assert p[2] == pytest.approx(height / 2, abs=1e-6) and np.allclose(p[:2], 1.5, atol=0.1)  # the middle
+    _assert_free_and_enclosed(scene, [p], [])
+    assert {"early_reflections", "late_reverb"} <= set(AcousticRenderer(scene, probes=probes).subsystems)
+
+
 def test_a_floor_plan_too_large_for_the_navigation_grid_still_gets_its_probe():
     """A 1000 x 1000 m hall needs 400M cells of the robot's 5 cm grid (refused, with advice); its probe is placed
     on a coarser floor grid instead, in free space at ear height, near the middle."""

@@ -353,7 +353,8 @@ PLACEMENT_CELLS = 1_000_000  # cells of the probe placement's floor grid where t
 
 def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rng=None) -> np.ndarray:
     """One probe per room at the free point of that room nearest its centre (a cell of the robot's navigable
-    floor, else of the free floor; a room with no free floor gets none), or ``n`` spread over the navigable floor.
+    floor, else of the free floor, else, in a room lower than the robot, where the floor has a ceiling over it:
+    :func:`_under_a_low_ceiling`; a room with none of these gets none), or ``n`` spread over the navigable floor.
     Each stands at ``height`` above the floor, lowered under a low ceiling (at most 0.3 m below it, at least half
     way up): never inside solid geometry, never outside the enclosure. (k, 3).
 
@@ -375,10 +376,36 @@ def default_probe_positions(scene, n: int | None = None, height: float = 1.5, rn
                 if len(xy):
                     pts.append(xy[np.argmin(np.linalg.norm(xy - r.footprint.mean(0), axis=1))])
                     break
+            else:  # no floor the robot's grid sees: a room lower than the robot
+                low = _under_a_low_ceiling(grid, r)
+                if low is not None:
+                    pts.append(low)
         xy = np.array(pts).reshape(-1, 2)
     else:
         xy = grid.sample(rng or np.random.default_rng(0), n)
     return np.c_[xy, _ear_heights(grid, xy, height)]
+
+
+def _under_a_low_ceiling(grid, room, candidates: int = 256):
+    """The point (2,) of ``room``'s footprint nearest its centre, on the grid's cells, where the floor is free under a
+    ceiling: straight down from 5 cm above the floor level an upward-facing surface within the grid's step of it,
+    straight up a downward-facing one (static structure only). The robot's grid finds no floor in a room lower
+    than the robot (its floor rays start at the robot's height, above that ceiling), so such a room had no probe
+    and no reverb. None where no cell qualifies (a room that is solid through)."""
+    c, (ny, nx) = grid.config.cell, grid.shape
+    ij = np.argwhere(np.ones((ny, nx), bool))
+    xy = grid.origin + (ij[:, ::-1] + 0.5) * c
+    xy = xy[room.contains(xy)]
+    if len(xy) == 0:
+        return None
+    xy = xy[np.argsort(np.linalg.norm(xy - room.footprint.mean(0), axis=1))[:candidates]]
+    z0 = grid.z_floor + 0.05
+    o = np.c_[xy, np.full(len(xy), z0)]
+    down = grid.caster.first_hit(o, np.tile([0.0, 0.0, -1.0], (len(xy), 1)), 1.0, include_dynamic=False)
+    up = grid.caster.first_hit(o, np.tile([0.0, 0.0, 1.0], (len(xy), 1)), 100.0, include_dynamic=False)
+    ok = down.hit & (down.normal[:, 2] > 0.7) & (down.distance <= 0.05 + grid.config.max_step) & \
+        up.hit & (up.normal[:, 2] < -0.7) & (up.distance > 0.05)
+    return xy[np.argmax(ok)] if ok.any() else None
 
 
 def _ear_heights(grid, xy: np.ndarray, height: float) -> np.ndarray:
