@@ -49,7 +49,7 @@ class _OneBlasThread:
 
     @classmethod
     def hold(cls) -> None:
-        from threadpoolctl import threadpool_limits
+        threadpool_limits = E.require("threadpoolctl", "audio mode 'thread'").threadpool_limits
 
         with cls._lock:
             if cls._held == 0:
