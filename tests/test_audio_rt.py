@@ -394,6 +394,14 @@ def test_a_second_engine_in_the_same_process_leaves_the_first_ones_stream_runnin
     """``mode="thread"`` runs the stream in this process. Naming the JACK client re-initialised PortAudio at every
     start, which closed the streams the process had open: the first engine's stopped calling back for good, its
     state still 'running', and nothing reported (session 67)."""
+    from threadpoolctl import threadpool_info
+
+    import scipy.linalg  # noqa: F401 - both OpenBLAS libraries loaded before
+
+    def blas_threads():
+        return {lib["filepath"]: lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+    before = blas_threads()
     a, b = _engine(mode="thread", mic=False), _engine(mode="thread", mic=False)
     try:
         ia = a.start()
@@ -402,9 +410,13 @@ def test_a_second_engine_in_the_same_process_leaves_the_first_ones_stream_runnin
         assert ib["jack_client"] == ia["jack_client"]  # one PortAudio, one client, two streams on it
         assert b.wait_callbacks(20) >= 20
         assert a.wait_callbacks(20, timeout=5.0) >= 20, (a.poll(), a.telemetry())
+        # while a stream runs its DSP in this process, its BLAS runs one thread (the next test says why)
+        a.stop()
+        assert set(blas_threads().values()) == {1}  # b still runs: a's stop leaves the limit in place
     finally:
         b.stop()
         a.stop()
+    assert blas_threads() == before  # restored once no stream of this process runs
 
 
 _DOORS_UNDER_A_THREAD_STREAM = """

@@ -50,6 +50,7 @@ class _OneBlasThread:
     @classmethod
     def hold(cls) -> None:
         threadpool_limits = E.require("threadpoolctl", "audio mode 'thread'").threadpool_limits
+        import scipy.linalg  # noqa: F401 - SciPy's own OpenBLAS, loaded now so that the limit covers it too
 
         with cls._lock:
             if cls._held == 0:
