@@ -53,7 +53,7 @@ class ImitationConfig:
     lr: float = 5e-4
     dataset_frames: int = 60_000
     val_episodes: int = 12
-    head: str = "discrete"  # or "continuous"
+    head: str = "discrete"  # or "fine" (25 wheel pairs: primitives_for), "continuous"
     aux_weight: float = 0.5  # the goal-prediction loss (0: no goal heads)
     seed: int = 0
     beta0: float = 1.0  # the expert's share in the first iteration, decaying to beta_min by the middle of the run
@@ -432,7 +432,7 @@ def eval_episodes(model, env, ego, keys: dict, indices, seed: int) -> list[dict]
 
 def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
     """The untrained policy ``cfg.agent`` names, for the env's spectrogram shape and action size."""
-    prims = primitives_for(action_dim) if cfg.head == "discrete" else ()
+    prims = primitives_for(action_dim, fine=cfg.head == "fine") if cfg.head != "continuous" else ()
     kind = map_kind_for(cfg)
     M = map_class(kind)
     shape = (M.CHANNELS, M.SIZE, M.SIZE) if cfg.egomap else ()
@@ -513,8 +513,8 @@ def train(cfg: ImitationConfig, out, progress=None, resume: bool = False,
 
     if cfg.frames < 1 or cfg.iterations < 1 or cfg.jobs < 1:
         raise ConfigError("--frames, --iterations and --jobs must be >= 1")
-    if cfg.head not in ("discrete", "continuous"):
-        raise ConfigError(f"head must be discrete or continuous, got {cfg.head!r}")
+    if cfg.head not in ("discrete", "fine", "continuous"):
+        raise ConfigError(f"head must be discrete, fine or continuous, got {cfg.head!r}")
     if cfg.agent not in ("av-nav", "savi", "multitask"):
         raise ConfigError(f"agent must be av-nav, savi or multitask, got {cfg.agent!r}")
     if cfg.egomap and cfg.task not in MAP_TASKS:

@@ -50,14 +50,16 @@ class AVNavConfig:
     # agents.navmap.SemNavMap
 
 
-def primitives_for(action_dim: int) -> tuple:
+def primitives_for(action_dim: int, fine: bool = False) -> tuple:
     """The discrete head's actions in wheel-velocity units: straight ahead at full, half and quarter speed, veering
     (the inner wheel at 0.75 .. 0 of the outer), turning on the spot at half and a quarter of full speed, standing
     still; with a stop component (action_dim 3) its stop (+1) and, on every other action, -1. The shortest-path
     expert's actions lie within 0.13 of one of them (its turns on the spot run at the robot's turn-rate limit, 0.52:
-    tested)."""
-    pairs = [(1.0, 1.0), (0.5, 0.5), (0.25, 0.25)]
-    for r in (0.75, 0.5, 0.25, 0.0):
+    tested). ``fine`` (``--head fine``): 25 pairs, straight ahead at three quarters too and veering every 0.125
+    (0.875 .. 0); the scripted follower snapped to them keeps more of its time in band than snapped to the 16
+    (README, "Why it stays below its teacher")."""
+    pairs = [(1.0, 1.0), (0.75, 0.75), (0.5, 0.5), (0.25, 0.25)] if fine else [(1.0, 1.0), (0.5, 0.5), (0.25, 0.25)]
+    for r in (0.875, 0.75, 0.625, 0.5, 0.375, 0.25, 0.125, 0.0) if fine else (0.75, 0.5, 0.25, 0.0):
         pairs += [(r, 1.0), (1.0, r)]
     pairs += [(-0.5, 0.5), (0.5, -0.5), (-0.25, 0.25), (0.25, -0.25), (0.0, 0.0)]
     if action_dim == 2:

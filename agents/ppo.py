@@ -234,7 +234,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         envs = make_envs(SENSORS)
         adim = envs[0].action_space.shape[0]
         model = AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=envs[0].observation_space[
-            "spectrogram"].shape, action_dim=adim, primitives=primitives_for(adim) if cfg.head == "discrete" else ()))
+            "spectrogram"].shape, action_dim=adim, primitives=primitives_for(adim, fine=cfg.head == "fine") if cfg.head != "continuous" else ()))
     model.to(dev)
     dist.broadcast(model)
     ref = None

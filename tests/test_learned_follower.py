@@ -50,6 +50,25 @@ def test_the_floor_shield_removes_the_actions_that_would_leave_the_floor_and_onl
     assert tuple(_policy_step(m, obs, m.initial_state(1), True, None, allowed=none)[0]) == tuple(table[0])
 
 
+
+def test_the_fine_head_holds_the_coarse_actions_and_halves_the_veering_step():
+    """``--head fine``: 25 wheel pairs holding the 16 of the default head, the veers every 0.125 instead of 0.25, so
+    any veer the scripted follower commands (inner wheel anywhere in [0, 1] of the outer) lies within 0.0625 of one;
+    a policy built with it has 25 outputs and its labels are the nearest of them."""
+    from agents.imitation import ImitationConfig, build_policy
+    from agents.models import primitives_for
+
+    coarse, fine = np.array(primitives_for(2)), np.array(primitives_for(2, fine=True))
+    assert len(fine) == 25 == len({tuple(p) for p in fine})
+    assert {tuple(p) for p in coarse} <= {tuple(p) for p in fine}
+    veers = np.stack([np.linspace(0.0, 1.0, 401), np.ones(401)], 1)
+    gap = lambda table: np.sqrt(((veers[:, None] - table[None]) ** 2).sum(-1)).min(1).max()  # noqa: E731
+    assert gap(fine) == pytest.approx(0.0625) and gap(coarse) == pytest.approx(0.125)
+    m = build_policy(ImitationConfig(task="SpeakerFollowing", head="fine", egomap=True), AVNavConfig().spec_shape, 2)
+    assert m.actor.out_features == 25 and np.allclose(m.table.numpy(), fine)
+    a = torch.tensor([[0.94, 1.0], [1.0, 0.3]])
+    assert fine[m.label(a).numpy()].tolist() == [[1.0, 1.0], [1.0, 0.25]]  # 0.94: 1.0 is nearer than 0.875
+
 def test_the_learned_speaker_follower_runs_headless_and_in_the_vr_loop(cli, tmp_path, monkeypatch):
     """`task run speaker-following --agent av-nav` builds the env with the sensors the checkpoint was trained on;
     in the VR loop the robot's agent gets the same observations (depth at its size, the spectrogram of its ears)."""

@@ -436,8 +436,9 @@ def add_task_commands(sub, bench_sub) -> None:
     t.add_argument("--size", type=A.count(40, 256), default=64, help="depth image side (default: %(default)s)")
     t.add_argument("--val-episodes", type=A.count(0, 10_000), default=8,
                    help="validation episodes per iteration (default: %(default)s)")
-    t.add_argument("--head", default="discrete", choices=("discrete", "continuous"),
-                   help="action head: wheel-velocity primitives or a Gaussian mean (default: %(default)s)")
+    t.add_argument("--head", default="discrete", choices=("discrete", "fine", "continuous"),
+                   help="action head: wheel-velocity primitives (fine: 25 of them, finer veers) or a Gaussian mean "
+                   "(default: %(default)s)")
     t.add_argument("--aux-weight", type=A.number(0.0, 100.0), default=0.5,
                    help="weight of the goal-prediction loss, 0 for none (default: %(default)s)")
     t.add_argument("--epochs", type=A.count(1, 1000), default=None, help="passes over the dataset per iteration "
