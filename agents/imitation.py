@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load_policy, load_train_state,
-                           primitives_for, resolve_device, save_policy as save)
+                           head_primitives, resolve_device, save_policy as save)
 
 from agents.maps import (MAP_TASKS, ROUTE_TASKS, collect_sensors, ego_for, floor_shield, map_class, map_kind_for,
                          sensors_for)
@@ -432,7 +432,7 @@ def eval_episodes(model, env, ego, keys: dict, indices, seed: int) -> list[dict]
 
 def build_policy(cfg: ImitationConfig, spec_shape: tuple, action_dim: int):
     """The untrained policy ``cfg.agent`` names, for the env's spectrogram shape and action size."""
-    prims = primitives_for(action_dim, fine=cfg.head == "fine") if cfg.head != "continuous" else ()
+    prims = head_primitives(cfg.head, action_dim)
     kind = map_kind_for(cfg)
     M = map_class(kind)
     shape = (M.CHANNELS, M.SIZE, M.SIZE) if cfg.egomap else ()

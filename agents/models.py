@@ -69,6 +69,11 @@ def primitives_for(action_dim: int, fine: bool = False) -> tuple:
     raise ValueError(f"no discrete actions for action_dim {action_dim}")
 
 
+def head_primitives(head: str, action_dim: int) -> tuple:
+    """``AVNavConfig.primitives`` for ``--head``: the 16 pairs (discrete), the 25 (fine), none (continuous)."""
+    return () if head == "continuous" else primitives_for(action_dim, fine=head == "fine")
+
+
 DEVICES = ("cpu", "cuda", "auto")
 
 

@@ -37,7 +37,7 @@ import torch
 
 from agents.imitation import NAV_VAL, VAL_KEYS, _inputs, _map_input, _stack, append_row, evaluate
 from agents.maps import SENSORS, ego_for, floor_shield, sensors_for
-from agents.models import (AVNav, AVNavConfig, acting_threads, load_policy, primitives_for, resolve_device,
+from agents.models import (AVNav, AVNavConfig, acting_threads, load_policy, head_primitives, resolve_device,
                            save_policy as save)
 
 
@@ -234,7 +234,7 @@ def train(cfg: PPOConfig, out, progress=None) -> dict:
         envs = make_envs(SENSORS)
         adim = envs[0].action_space.shape[0]
         model = AVNav(AVNavConfig(depth_hw=(cfg.size, cfg.size), spec_shape=envs[0].observation_space[
-            "spectrogram"].shape, action_dim=adim, primitives=primitives_for(adim, fine=cfg.head == "fine") if cfg.head != "continuous" else ()))
+            "spectrogram"].shape, action_dim=adim, primitives=head_primitives(cfg.head, adim)))
     model.to(dev)
     dist.broadcast(model)
     ref = None

@@ -122,9 +122,9 @@ def name_jack_client(name: str) -> None:
     global _client_name
     import sys
 
-    want = name.encode()[:60]
     if _client_name is not None:  # named already: renaming would close the streams it has open
         return
+    want = name.encode()[:60]
     if "sounddevice" not in sys.modules:
         from ctypes.util import find_library
 

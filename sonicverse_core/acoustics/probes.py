@@ -392,9 +392,7 @@ def _under_a_low_ceiling(grid, room, candidates: int = 256):
     straight up a downward-facing one (static structure only). The robot's grid finds no floor in a room lower
     than the robot (its floor rays start at the robot's height, above that ceiling), so such a room had no probe
     and no reverb. None where no cell qualifies (a room that is solid through)."""
-    c, (ny, nx) = grid.config.cell, grid.shape
-    ij = np.argwhere(np.ones((ny, nx), bool))
-    xy = grid.origin + (ij[:, ::-1] + 0.5) * c
+    xy = grid.center_of(np.argwhere(np.ones(grid.shape, bool)))
     xy = xy[room.contains(xy)]
     if len(xy) == 0:
         return None
