@@ -274,12 +274,13 @@ def _map_input(mp, device=None):
 
 
 def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = None, egomap=None, allowed=None,
-                 temperature: float = 1.0):
+                 temperature: float = 1.0, stop_at: float | None = None):
     """(action, next hidden state): the mean / most likely action, or with ``rng`` (discrete head) one drawn from
     the policy's distribution (raised to 1 / ``temperature``); a stop (tasks that have one) only when it is the most
-    likely action, since a stop drawn by chance would end the episode. ``egomap``: the (C, H, W) uint8 map of a
-    policy that reads one. ``allowed`` (discrete head): a bool per action; the others' probabilities are set to 0
-    before drawing or taking the most likely one, unless that leaves none."""
+    likely action or, with ``stop_at`` and ``rng``, when its probability reaches ``stop_at`` (a stop is never drawn
+    by chance: it would end the episode). ``egomap``: the (C, H, W) uint8 map of a policy that reads one.
+    ``allowed`` (discrete head): a bool per action; the others' probabilities are set to 0 before drawing or taking
+    the most likely one, unless that leaves none."""
     dev = model.device
     kw = {} if egomap is None else {"egomap": _map_input(torch.from_numpy(np.ascontiguousarray(egomap))[None, None],
                                                          dev)}
@@ -294,6 +295,8 @@ def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = N
         stop = table[:, 2] > 0 if table.shape[1] == 3 else np.zeros(len(prob), bool)
         if rng is None or stop[best]:  # the stop ends the episode: taken only when it is the most likely action
             return table[best], h
+        if stop_at is not None and stop.any() and float(prob[stop].sum()) >= stop_at * float(prob.sum()):
+            return table[int(np.argmax(np.where(stop, prob, -1.0)))], h
         prob = np.where(stop, 0.0, prob)
         if temperature != 1.0:
             prob = prob / prob.max()  # 1 at the most likely action: no underflow of the power

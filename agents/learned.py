@@ -11,7 +11,12 @@ A policy with a map input (the speaker follower) acts through a shield: the acti
 (0.3 s), would drive the robot off the floor plan's navigable floor (walls, furniture: what the scripted follower
 plans on) are removed from its distribution before drawing, unless that leaves none. On the README's 30 test
 episodes it took the follower from 50 collisions an episode to 2.8 and its catch success from 76.7% to 96.7%; its
-time in band stayed where it was (0.720 against 0.734, paired -0.014 [-0.066, +0.038])."""
+time in band stayed where it was (0.720 against 0.734, paired -0.014 [-0.066, +0.038]).
+
+A policy with a stop action (SemanticAudioNav) stops only where the stop is its most likely action (a stop drawn by
+chance would end the episode). ``stop_at`` (off by default) makes it stop also where the stop's probability reaches
+that value; with 0.1 the route av-nav's time-outs on the 200 test episodes fell from 62 to 40, but its SR moved by
++0.5 points [-3.5, +4.5] (README, "When a learned navigator stops")."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -43,6 +48,9 @@ class AVNavAgent(Agent):
     # s: a policy that reads the task's floor plan (``--map``) never draws an action that, held this long, would
     # drive it off the plan's navigable floor (:func:`agents.following.floor_safe`); None: no such check
     shield_s: float | None = 0.3  # agents.maps.SHIELD_S
+    # a policy with a stop action (SemanticAudioNav) also stops where the stop's probability reaches this; None (the
+    # default): only where the stop is the most likely action (README "When a learned navigator stops": 0.1 tried)
+    stop_at: float | None = None
 
     def __init__(self, rng: np.random.Generator | None = None, checkpoint=None, task: str = "AudioGoal"):
         super().__init__(rng)
@@ -76,7 +84,7 @@ class AVNavAgent(Agent):
 
         mp = self.ego.observe(obs, info) if self.ego is not None else None
         a, self.h = _policy_step(self.model, obs, self.h, self.start, self.rng if self.sample else None, mp,
-                                 floor_shield(self.model, self.ego, self.shield_s), self.temperature)
+                                 floor_shield(self.model, self.ego, self.shield_s), self.temperature, self.stop_at)
         self.start = False
         return np.clip(a, -1, 1).astype(np.float32)
 

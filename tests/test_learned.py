@@ -490,6 +490,36 @@ def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
     assert all(a[2] < 0 for a in drawn) and len({tuple(a) for a in drawn}) > 3  # drawn, never the stop
 
 
+def test_a_policy_stops_where_its_stops_probability_reaches_stop_at():
+    """With ``stop_at`` (``AVNavAgent.stop_at``, off by default) a drawn policy stops where the stop's probability
+    reaches it, though another action is more likely; just below it, it never stops. Greedy acting (no Generator)
+    keeps the most likely action."""
+    from agents.imitation import _policy_step
+    from agents.learned import AVNavAgent
+    from agents.models import primitives_for
+
+    assert AVNavAgent.stop_at is None  # the shipped figures were measured with the stop taken where most likely
+    cfg = AVNavConfig(primitives=primitives_for(3))
+    m = AVNav(cfg).eval()
+    stop = [i for i, a in enumerate(cfg.primitives) if a[2] > 0][0]
+    obs = {"depth": np.full((64, 64, 1), 2.0, np.float32), "spectrogram": np.ones(cfg.spec_shape, np.float32),
+           "pose": np.zeros(4, np.float32)}
+    with torch.no_grad():
+        m.actor.weight.zero_()
+        m.actor.bias.fill_(0.0)
+        m.actor.bias[stop] = 1.5
+        m.actor.bias[0] = 2.0  # straight ahead the most likely
+        p_stop = float(torch.softmax(m.actor.bias.double(), 0)[stop])
+    assert 0.1 < p_stop < 0.3
+    rng = np.random.default_rng(2)
+    at = [_policy_step(m, obs, m.initial_state(1), True, rng, stop_at=p_stop * 0.99)[0] for _ in range(20)]
+    assert all(a[2] > 0 for a in at)
+    below = [_policy_step(m, obs, m.initial_state(1), True, rng, stop_at=p_stop * 1.01)[0] for _ in range(200)]
+    assert all(a[2] < 0 for a in below) and len({tuple(a) for a in below}) > 3
+    greedy, _ = _policy_step(m, obs, m.initial_state(1), True, None, stop_at=p_stop * 0.5)
+    assert tuple(greedy) == tuple(cfg.primitives[0])
+
+
 def test_ppo_draws_through_the_floor_shield_and_scores_what_it_drew_under_it():
     """PPO's policy distribution under the floor shield's mask (a map policy fine-tuned as it plays): a forbidden
     action is never drawn, the allowed ones keep their relative odds (log-probabilities renormalised over them),
