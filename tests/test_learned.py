@@ -467,8 +467,9 @@ def test_dd_ppo_picks_nccl_only_with_a_gpu_per_process(monkeypatch):
     assert Dist.backend_for(cuda) == "nccl"
 
 
-def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
-    from agents.imitation import _policy_step
+def _policy_with_a_stop(stop_bias: float, ahead_bias: float = 0.0):
+    """An AV-Nav policy with the stop action whose logits are its actor's biases alone: ``stop_bias`` for the stop,
+    ``ahead_bias`` for straight ahead, 0 for the rest; (config, model, the stop's index, an observation)."""
     from agents.models import primitives_for
 
     cfg = AVNavConfig(primitives=primitives_for(3))
@@ -479,12 +480,18 @@ def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
     with torch.no_grad():
         m.actor.weight.zero_()
         m.actor.bias.fill_(0.0)
-        m.actor.bias[stop] = 2.0  # stop: the most likely action
+        m.actor.bias[stop] = stop_bias
+        m.actor.bias[0] = ahead_bias
+    return cfg, m, stop, obs
+
+
+def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
+    from agents.imitation import _policy_step
+
+    _, m, _, obs = _policy_with_a_stop(2.0)  # stop: the most likely action
     a, _ = _policy_step(m, obs, m.initial_state(1), True, np.random.default_rng(0))
     assert a[2] > 0
-    with torch.no_grad():
-        m.actor.bias[stop] = 1.5
-        m.actor.bias[0] = 2.0  # straight ahead most likely; the stop still has about a third of the mass
+    _, m, _, obs = _policy_with_a_stop(1.5, 2.0)  # straight ahead most likely; the stop still has a sixth of the mass
     rng = np.random.default_rng(1)
     drawn = [_policy_step(m, obs, m.initial_state(1), True, rng)[0] for _ in range(200)]
     assert all(a[2] < 0 for a in drawn) and len({tuple(a) for a in drawn}) > 3  # drawn, never the stop
@@ -496,20 +503,10 @@ def test_a_policy_stops_where_its_stops_probability_reaches_stop_at():
     keeps the most likely action."""
     from agents.imitation import _policy_step
     from agents.learned import AVNavAgent
-    from agents.models import primitives_for
 
     assert AVNavAgent.stop_at is None  # the shipped figures were measured with the stop taken where most likely
-    cfg = AVNavConfig(primitives=primitives_for(3))
-    m = AVNav(cfg).eval()
-    stop = [i for i, a in enumerate(cfg.primitives) if a[2] > 0][0]
-    obs = {"depth": np.full((64, 64, 1), 2.0, np.float32), "spectrogram": np.ones(cfg.spec_shape, np.float32),
-           "pose": np.zeros(4, np.float32)}
-    with torch.no_grad():
-        m.actor.weight.zero_()
-        m.actor.bias.fill_(0.0)
-        m.actor.bias[stop] = 1.5
-        m.actor.bias[0] = 2.0  # straight ahead the most likely
-        p_stop = float(torch.softmax(m.actor.bias.double(), 0)[stop])
+    cfg, m, stop, obs = _policy_with_a_stop(1.5, 2.0)  # straight ahead the most likely
+    p_stop = float(torch.softmax(m.actor.bias.detach().double(), 0)[stop])
     assert 0.1 < p_stop < 0.3
     rng = np.random.default_rng(2)
     at = [_policy_step(m, obs, m.initial_state(1), True, rng, stop_at=p_stop * 0.99)[0] for _ in range(20)]
