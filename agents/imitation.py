@@ -36,8 +36,8 @@ import torch
 from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threads, load_policy, load_train_state,
                            head_primitives, resolve_device, save_policy as save)
 
-from agents.maps import (MAP_TASKS, ROUTE_TASKS, collect_sensors, ego_for, floor_shield, map_class, map_kind_for,
-                         sensors_for)
+from agents.maps import (MAP_TASKS, ROUTE_TASKS, allowed_actions, collect_sensors, ego_for, floor_shield, map_class,
+                         map_kind_for, sensors_for)
 
 
 @dataclass
@@ -395,7 +395,8 @@ def pretrain_goal(model, data: Dataset, rng: np.random.Generator, steps: int, ba
 def evaluate(model, task: str, episodes: int, split: str, size: int, seed: int = 0, jobs=None) -> dict:
     """The policy alone over ``episodes`` of ``split`` homes, acting as the ``av-nav`` agent does (actions drawn
     from the discrete head with a Generator seeded per episode, through the floor shield where the policy reads the
-    floor plan; the continuous head's mean): the means of the task's
+    floor plan and the stop gate where it reads sem-nav's route: :func:`agents.maps.allowed_actions`; the continuous
+    head's mean): the means of the task's
     validation scores (``VAL_KEYS``: SR and SPL on navigation; on speaker following ``sr`` is the catch success and
     ``band`` the time in band). ``jobs``: a :class:`agents.dagger_jobs.Jobs` that plays them in its processes (the
     same scores)."""
@@ -424,7 +425,8 @@ def eval_episodes(model, env, ego, keys: dict, indices, seed: int) -> list[dict]
             ego.reset(env, obs, info)
         while not done:
             mp = ego.observe(obs, info) if ego is not None else None
-            a, h = _policy_step(model, obs, h, start, draw, mp, floor_shield(model, ego))
+            allowed, stop_at = allowed_actions(model, ego)
+            a, h = _policy_step(model, obs, h, start, draw, mp, allowed, stop_at=stop_at)
             start = False
             obs, _, term, trunc, info = env.step(a.astype(np.float32))
             done = term or trunc

@@ -1,5 +1,6 @@
-"""Which sensors and which egocentric map a learned policy reads, and the shield it acts through: one place for
-what training (:mod:`agents.imitation`, :mod:`agents.ppo`) and playing (:mod:`agents.learned`) must agree on.
+"""Which sensors and which egocentric map a learned policy reads, the shield it acts through and where it may stop:
+one place for what training (:mod:`agents.imitation`, :mod:`agents.ppo`) and playing (:mod:`agents.learned`) must
+agree on.
 
 A policy's ``map_kind`` (its config's, when it has a map input) names its map: "follow" the speaker follower's
 :class:`agents.following.EgoMap` (from the task's floor plan), "nav" :class:`agents.navmap.NavEgoMap` (from depth,
@@ -57,6 +58,9 @@ def ego_for(model):
 
 
 SHIELD_S = 0.3  # s: the floor shield's horizon (agents.learned.AVNavAgent.shield_s)
+#: a route policy with a stop action stops, where :func:`stop_gate` lets it, once the stop's probability reaches this
+#: (agents.learned.AVNavAgent.stop_at; README "When a learned navigator stops")
+STOP_AT = 0.1
 
 
 def floor_shield(model, ego, horizon_s: float | None = SHIELD_S):
@@ -69,6 +73,30 @@ def floor_shield(model, ego, horizon_s: float | None = SHIELD_S):
     if not horizon_s or not model.discrete or not isinstance(ego, EgoMap):
         return None
     return floor_safe(model.table.cpu().numpy(), ego.map.grid, ego.me.pose, ego.robot, horizon_s)
+
+
+def stop_gate(model, ego):
+    """The actions a policy with a stop action (SemanticAudioNav) that reads sem-nav's route
+    (:class:`agents.navmap.RouteNavMap`) may take now: every one but the stop, which only while the route's sem-nav
+    faces the target it would stop beside (the map then draws the line to it); None (no restriction) for other
+    policies. Call it after ``ego.observe``."""
+    from agents.navmap import RouteNavMap
+
+    if not model.discrete or not isinstance(ego, RouteNavMap) or model.table.shape[1] != 3:
+        return None
+    stop = model.table[:, 2].cpu().numpy() > 0
+    return ~stop | (ego.teacher.mode == "face")
+
+
+def allowed_actions(model, ego, shield_s: float | None = SHIELD_S, stop_at: float | None = STOP_AT):
+    """(the actions a policy may take now, the stop's probability that makes it stop) as it plays: the floor
+    shield's (:func:`floor_shield`) or, given ``stop_at``, the stop gate's (:func:`stop_gate`) mask, None where
+    neither applies; ``stop_at`` where the gate applies, else None (a stop only where it is the most likely action)."""
+    shield = floor_shield(model, ego, shield_s)
+    gate = None if stop_at is None else stop_gate(model, ego)
+    if gate is None:
+        return shield, None
+    return (gate if shield is None else gate & shield), stop_at
 
 
 def map_kind_for(cfg: "ImitationConfig") -> str:

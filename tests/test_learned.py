@@ -498,13 +498,15 @@ def test_drawn_actions_stop_only_when_the_stop_is_the_most_likely_action():
 
 
 def test_a_policy_stops_where_its_stops_probability_reaches_stop_at():
-    """With ``stop_at`` (``AVNavAgent.stop_at``, off by default) a drawn policy stops where the stop's probability
-    reaches it, though another action is more likely; just below it, it never stops. Greedy acting (no Generator)
-    keeps the most likely action."""
+    """With ``stop_at`` (``AVNavAgent.stop_at``: 0.1 for the route av-nav) a drawn policy stops where the stop's
+    probability reaches it, though another action is more likely; just below it, it never stops. Greedy acting (no
+    Generator) keeps the most likely action."""
     from agents.imitation import _policy_step
-    from agents.learned import AVNavAgent
+    from agents.learned import AVNavAgent, MultitaskAgent, SAViAgent
+    from agents.maps import STOP_AT
 
-    assert AVNavAgent.stop_at is None  # the shipped figures were measured with the stop taken where most likely
+    assert AVNavAgent.stop_at == STOP_AT == 0.1  # the shipped route av-nav's figures were measured with it
+    assert SAViAgent.stop_at is None and MultitaskAgent.stop_at is None  # theirs without it
     cfg, m, stop, obs = _policy_with_a_stop(1.5, 2.0)  # straight ahead the most likely
     p_stop = float(torch.softmax(m.actor.bias.detach().double(), 0)[stop])
     assert 0.1 < p_stop < 0.3
@@ -515,6 +517,35 @@ def test_a_policy_stops_where_its_stops_probability_reaches_stop_at():
     assert all(a[2] < 0 for a in below) and len({tuple(a) for a in below}) > 3
     greedy, _ = _policy_step(m, obs, m.initial_state(1), True, None, stop_at=p_stop * 0.5)
     assert tuple(greedy) == tuple(cfg.primitives[0])
+
+
+def test_a_route_policy_may_stop_only_while_its_maps_sem_nav_faces_its_target():
+    """``agents.maps.stop_gate``: on sem-nav's route map the stop is masked unless the route's sem-nav faces the target
+    it would stop beside; the other actions always stay. ``allowed_actions`` gives the gate with ``STOP_AT``, and no
+    mask and no ``stop_at`` to a policy without the route map (it stops only where the stop is most likely)."""
+    from types import SimpleNamespace
+
+    from agents.imitation import _policy_step
+    from agents.maps import STOP_AT, allowed_actions, stop_gate
+    from agents.navmap import NavEgoMap, RouteNavMap2
+
+    _, m, stop, obs = _policy_with_a_stop(3.0)  # the stop by far the most likely action
+    ego = RouteNavMap2.__new__(RouteNavMap2)
+    ego.teacher = SimpleNamespace(mode="explore")
+    gate = stop_gate(m, ego)
+    assert not gate[stop] and gate.sum() == len(gate) - 1
+    allowed, stop_at = allowed_actions(m, ego)
+    assert stop_at == STOP_AT and np.array_equal(allowed, gate)
+    rng = np.random.default_rng(3)
+    drawn = [_policy_step(m, obs, m.initial_state(1), True, rng, allowed=allowed, stop_at=stop_at)[0]
+             for _ in range(50)]
+    assert all(a[2] < 0 for a in drawn)  # exploring: never the stop, however likely
+    ego.teacher.mode = "face"
+    allowed, stop_at = allowed_actions(m, ego)
+    assert allowed.all()
+    assert _policy_step(m, obs, m.initial_state(1), True, rng, allowed=allowed, stop_at=stop_at)[0][2] > 0
+    assert allowed_actions(m, NavEgoMap()) == (None, None) and allowed_actions(m, None) == (None, None)
+    assert allowed_actions(m, ego, stop_at=None) == (None, None)  # savi and multitask as measured: no gate
 
 
 def test_ppo_draws_through_the_floor_shield_and_scores_what_it_drew_under_it():
