@@ -507,6 +507,10 @@ def test_a_policy_stops_where_its_stops_probability_reaches_stop_at():
 
     assert AVNavAgent.stop_at == STOP_AT == 0.1  # the shipped route av-nav's figures were measured with it
     assert SAViAgent.stop_at is None and MultitaskAgent.stop_at is None  # theirs without it
+    from types import SimpleNamespace
+
+    from agents.maps import stop_at_for  # training validation plays each as its agent does
+    assert [stop_at_for(SimpleNamespace(arch=a)) for a in ("av-nav", "savi", "multitask")] == [STOP_AT, None, None]
     cfg, m, stop, obs = _policy_with_a_stop(1.5, 2.0)  # straight ahead the most likely
     p_stop = float(torch.softmax(m.actor.bias.detach().double(), 0)[stop])
     assert 0.1 < p_stop < 0.3
