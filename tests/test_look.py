@@ -247,6 +247,64 @@ def test_a_closed_lit_camera_collected_in_another_ones_frame_leaves_it_drawing()
     assert np.array_equal(after["rgb"], before["rgb"]) and np.array_equal(after["depth"], before["depth"])
 
 
+def test_a_closed_camera_leaves_no_egl_context_current():
+    """Closing releases the camera's EGL context before destroying it: a context destroyed while current is only
+    marked, and Mesa 22.3 freed it inside the next camera's ``eglMakeCurrent`` (a corrupted heap, once in a few
+    hundred runs of ``sonicverse bench camera``). PyOpenGL wraps each handle anew, so the old check (``==``) never
+    saw its own context current."""
+    from sonicverse_core.sensors.camera import RGBDCamera
+    from sonicverse_core.sensors.offscreen import current_egl_context
+
+    sc = load_scene("builtin:apartment")
+    c = next(r for r in sc.rooms if r.type == "living room").footprint.mean(0)
+    cam = RGBDCamera(sc, 32, 32, semantic=True)
+    cam.render(c[0], c[1], 1.5, 0.0)
+    assert current_egl_context() != 0  # pyrender leaves the last context that drew current
+    cam.close()
+    assert current_egl_context() == 0
+
+
+def test_an_unclosed_camera_collected_in_another_ones_frame_leaves_that_frame_in_its_own_context():
+    """The collector takes a renderer nobody closed (an env dropped in a notebook) inside another camera's frame:
+    its clean-up makes its own context current to free its GL objects, and pyrender's left it so, destroyed, for
+    the rest of that frame. Here the context that was current is given back."""
+    import gc
+
+    from sonicverse_core.sensors.camera import RGBDCamera
+    from sonicverse_core.sensors.offscreen import current_egl_context
+
+    sc = load_scene("builtin:apartment")
+    c = next(r for r in sc.rooms if r.type == "living room").footprint.mean(0)
+    first = RGBDCamera(sc, 32, 32, look="pbr")
+    first.render(c[0], c[1], 1.5, 0.0)
+    held = [first.renderer]
+    first.renderer = None  # dropped without close(): only ``held`` keeps it
+    del first
+    second = RGBDCamera(sc, 32, 32, look="pbr")
+    try:
+        before = second.render(c[0], c[1], 1.5, 0.0)
+        inner = second.renderer._renderer
+        update = inner._update_context
+        seen = []
+
+        def update_then_collect(*a, **kw):  # the collector runs in this frame, with this context current
+            update(*a, **kw)
+            own = current_egl_context()
+            held.clear()
+            gc.collect()
+            seen.append((own, current_egl_context()))
+
+        inner._update_context = update_then_collect
+        during = second.render(c[0], c[1], 1.5, 0.0)
+        del inner._update_context
+        assert not held and len(seen) == 1 and seen[0][0] != 0 and seen[0][1] == seen[0][0]
+        after = second.render(c[0], c[1], 1.5, 0.0)
+    finally:
+        second.close()
+    for frame in (during, after):
+        assert np.array_equal(frame["rgb"], before["rgb"]) and np.array_equal(frame["depth"], before["depth"])
+
+
 def test_no_two_parts_of_different_colours_fight_in_depth():
     """Faces of two parts of an object that lie in the same plane, face the same way and overlap would flicker (the
     depth test cannot order them); parts of one colour may (they draw the same), and downward faces are unseen."""

@@ -1,6 +1,7 @@
 """pyrender's offscreen renderer as the cameras and the VR views drive it (EGL: Mesa llvmpipe on a CPU, the GPU's
 driver where there is one): single-sampled and colour-only framebuffers, the lit shader's shadow bias, and freeing a
-renderer's GL objects and EGL context without ending the EGL display every context of the process shares. Each
+renderer's GL objects and EGL context (released first, the thread's binding given back) without ending the EGL
+display every context of the process shares. Each
 adapts a private part of pyrender 0.1.45, pinned in requirements.txt; tests cover them (``tests/test_look.py``,
 ``tests/test_vr.py``, ``tests/test_world.py``)."""
 from __future__ import annotations
@@ -117,12 +118,80 @@ def _delete_gl_objects_once(self) -> None:
     self._shadow_fb = None
 
 
+def _handle(ptr) -> int:
+    """An EGL handle's address (PyOpenGL wraps each handle it returns in a new object, so ``==`` on two wrappers of
+    the same context is False)."""
+    import ctypes
+
+    if ptr is None:
+        return 0
+    return ctypes.cast(ptr, ctypes.c_void_p).value or 0
+
+
+def current_egl_context() -> int:
+    """The address of the EGL context current on this thread (0: none)."""
+    from OpenGL.EGL import eglGetCurrentContext
+
+    return _handle(eglGetCurrentContext())
+
+
+def _bound():
+    """This thread's EGL binding: (display, draw surface, read surface, context), or None when none is current."""
+    from OpenGL.EGL import EGL_DRAW, EGL_READ, eglGetCurrentContext, eglGetCurrentDisplay, eglGetCurrentSurface
+
+    ctx = eglGetCurrentContext()
+    if not _handle(ctx):
+        return None
+    return eglGetCurrentDisplay(), eglGetCurrentSurface(EGL_DRAW), eglGetCurrentSurface(EGL_READ), ctx
+
+
+def _delete_context(self) -> None:
+    """Destroy this platform's EGL context, not the display every context of the process shares; the context is
+    released first (EGL only marks a context destroyed while current, and Mesa 22.3 then frees it inside whichever
+    ``eglMakeCurrent`` comes next: a process aborting with a corrupted heap in a later frame, once in a few hundred
+    runs of ``sonicverse bench camera``)."""
+    from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+
+    if self._egl_display is not None and self._egl_context is not None:
+        if current_egl_context():
+            eglMakeCurrent(self._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+        eglDestroyContext(self._egl_display, self._egl_context)
+        self._egl_context = None
+    self._egl_display = None
+
+
+def _delete_offscreen(self) -> None:
+    """``OffscreenRenderer.delete`` (also its ``__del__``, when the garbage collector takes a renderer nobody closed)
+    that frees this renderer's GL objects in its own context, destroys that context only (:func:`_delete_context`)
+    and then gives the thread back the context that was current before: the collector runs inside other renderers'
+    frames, and pyrender's own ``delete`` left the collected renderer's context current there, so the rest of that
+    frame drew into a destroyed context."""
+    from OpenGL.EGL import eglMakeCurrent
+
+    platform = self.__dict__.get("_platform")
+    if platform is None:  # already deleted
+        return
+    saved = _bound()
+    own = saved is not None and _handle(saved[3]) == _handle(platform._egl_context)
+    try:
+        platform.make_current()
+        if self._renderer is not None:
+            self._renderer.delete()
+        platform.delete_context()
+    finally:
+        self._renderer = None
+        self._platform = None
+        if saved is not None and not own:
+            eglMakeCurrent(*saved)
+
+
 def keep_display_on_delete(renderer) -> None:
     """pyrender's EGL platform terminates the EGL display when its context is deleted, and the display is shared by
     every context of the process. That also happens when the garbage collector takes a renderer nobody closed (an
     env dropped without ``close()``, as in a notebook): every other env's camera then failed on its next frame
-    (glBindFramebuffer: invalid operation). Here deleting a renderer's context destroys that context only, and its
-    GL objects are freed once (:func:`_delete_gl_objects_once`)."""
+    (glBindFramebuffer: invalid operation). Here deleting a renderer frees its GL objects once
+    (:func:`_delete_gl_objects_once`), destroys its own context only, released first (:func:`_delete_context`), and
+    leaves current the context that was (:func:`_delete_offscreen`)."""
     import types
 
     inner = getattr(renderer, "_renderer", None)
@@ -131,34 +200,28 @@ def keep_display_on_delete(renderer) -> None:
     platform = getattr(renderer, "_platform", None)
     if platform is None or not hasattr(platform, "_egl_display"):  # not EGL
         return
+    platform.__class__ = _keeping_display(type(platform), "delete_context", _delete_context)
+    renderer.__class__ = _keeping_display(type(renderer), "delete", _delete_offscreen)
 
-    def delete_context(self):
-        from OpenGL.EGL import (EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglGetCurrentContext,
-                                eglMakeCurrent)
 
-        if self._egl_display is not None and self._egl_context is not None:
-            if eglGetCurrentContext() == self._egl_context:
-                eglMakeCurrent(self._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
-            eglDestroyContext(self._egl_display, self._egl_context)
-            self._egl_context = None
-        self._egl_display = None
+_CLASSES: dict = {}
 
-    platform.delete_context = types.MethodType(delete_context, platform)
+
+def _keeping_display(base, name: str, method):
+    """``base`` (pyrender's EGLPlatform or OffscreenRenderer) with ``method`` as its ``name``: a subclass, so that no
+    bound method kept in an instance makes a reference cycle (its clean-up then waits for the collector)."""
+    if getattr(base, "_keeps_display", False):
+        return base
+    if base not in _CLASSES:
+        _CLASSES[base] = type(base.__name__, (base,), {name: method, "_keeps_display": True, "__module__": __name__})
+    return _CLASSES[base]
 
 
 def release_offscreen(renderer) -> None:
     """Free a pyrender OffscreenRenderer's GL objects and destroy its own EGL context, leaving the EGL display
-    initialised (:func:`keep_display_on_delete`: pyrender's ``delete()`` would terminate the display every context
-    of the process shares, and its ``gc.collect()`` is not needed here)."""
-    platform = getattr(renderer, "_platform", None)
-    if platform is None:  # already released
+    initialised and this thread's binding as it was (:func:`keep_display_on_delete`: pyrender's ``delete()`` would
+    terminate the display every context of the process shares, and its ``gc.collect()`` is not needed here)."""
+    if getattr(renderer, "_platform", None) is None:  # already released
         return
     keep_display_on_delete(renderer)  # a stock renderer too
-    if not hasattr(platform, "_egl_display"):  # not EGL
-        renderer.delete()
-        return
-    platform.make_current()
-    renderer._renderer.delete()
-    platform.delete_context()
-    renderer._renderer = None
-    renderer._platform = None
+    renderer.delete()
