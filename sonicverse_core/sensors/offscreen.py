@@ -147,9 +147,9 @@ def _bound():
 
 def _delete_context(self) -> None:
     """Destroy this platform's EGL context, not the display every context of the process shares; the context is
-    released first (EGL only marks a context destroyed while current, and Mesa 22.3 then frees it inside whichever
-    ``eglMakeCurrent`` comes next: a process aborting with a corrupted heap in a later frame, once in a few hundred
-    runs of ``sonicverse bench camera``)."""
+    released first: EGL only marks a context destroyed while current, and frees it inside whichever
+    ``eglMakeCurrent`` comes next, in another renderer's set-up (the likely cause of ``bench camera``'s rare abort
+    with a corrupted heap in a new camera's first frames; README, "A crash in native code")."""
     from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
 
     if self._egl_display is not None and self._egl_context is not None:
