@@ -37,7 +37,7 @@ from agents.models import (DEPTH_MAX, SPEC_MAX, AVNav, AVNavConfig, acting_threa
                            head_primitives, resolve_device, save_policy as save)
 
 from agents.maps import (MAP_TASKS, ROUTE_TASKS, allowed_actions, collect_sensors, ego_for, floor_shield, map_class,
-                         map_kind_for, sensors_for, stop_at_for)
+                         map_kind_for, sensors_for)
 
 
 @dataclass
@@ -425,7 +425,7 @@ def eval_episodes(model, env, ego, keys: dict, indices, seed: int) -> list[dict]
             ego.reset(env, obs, info)
         while not done:
             mp = ego.observe(obs, info) if ego is not None else None
-            allowed, stop_at = allowed_actions(model, ego, stop_at=stop_at_for(model))
+            allowed, stop_at = allowed_actions(model, ego)  # as the agents play: the floor shield or the stop gate
             a, h = _policy_step(model, obs, h, start, draw, mp, allowed, stop_at=stop_at)
             start = False
             obs, _, term, trunc, info = env.step(a.astype(np.float32))

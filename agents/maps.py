@@ -88,12 +88,6 @@ def stop_gate(model, ego):
     return ~stop | (ego.teacher.mode == "face")
 
 
-def stop_at_for(model) -> float | None:
-    """The ``stop_at`` a policy plays with (:class:`agents.learned.AVNavAgent` and its subclasses' ``stop_at``):
-    ``STOP_AT`` for av-nav, None for SAVi and the multi-task model (their figures were measured without the gate)."""
-    return STOP_AT if getattr(model, "arch", "av-nav") == "av-nav" else None
-
-
 def allowed_actions(model, ego, shield_s: float | None = SHIELD_S, stop_at: float | None = STOP_AT):
     """(the actions a policy may take now, the stop's probability that makes it stop) as it plays: the floor
     shield's (:func:`floor_shield`) or, given ``stop_at``, the stop gate's (:func:`stop_gate`) mask, None where
