@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.maps import SHIELD_S, STOP_AT
 from agents.scripted import Agent
 
 CHECKPOINTS = Path(__file__).resolve().parent / "checkpoints"
@@ -51,11 +52,11 @@ class AVNavAgent(Agent):
     arch = "av-nav"  # the checkpoint's architecture
     # s: a policy that reads the task's floor plan (``--map``) never draws an action that, held this long, would
     # drive it off the plan's navigable floor (:func:`agents.following.floor_safe`); None: no such check
-    shield_s: float | None = 0.3  # agents.maps.SHIELD_S
+    shield_s: float | None = SHIELD_S
     # a route policy with a stop action (SemanticAudioNav) may stop only while its map's sem-nav faces its target
     # (agents.maps.stop_gate), and there stops once the stop's probability reaches this; None: only where the stop is
     # the most likely action (README "When a learned navigator stops")
-    stop_at: float | None = 0.1  # agents.maps.STOP_AT
+    stop_at: float | None = STOP_AT
 
     def __init__(self, rng: np.random.Generator | None = None, checkpoint=None, task: str = "AudioGoal"):
         super().__init__(rng)

@@ -249,9 +249,9 @@ def test_a_closed_lit_camera_collected_in_another_ones_frame_leaves_it_drawing()
 
 def test_a_closed_camera_leaves_no_egl_context_current():
     """Closing releases the camera's EGL context before destroying it: a context destroyed while current is only
-    marked, and Mesa 22.3 freed it inside the next camera's ``eglMakeCurrent`` (a corrupted heap, once in a few
-    hundred runs of ``sonicverse bench camera``). PyOpenGL wraps each handle anew, so the old check (``==``) never
-    saw its own context current."""
+    marked, and freed inside the next camera's ``eglMakeCurrent`` (the likely cause of a corrupted heap, once in a
+    few hundred runs of ``sonicverse bench camera``). PyOpenGL wraps each handle anew, so the old check (``==``)
+    never saw its own context current."""
     from sonicverse_core.sensors.camera import RGBDCamera
     from sonicverse_core.sensors.offscreen import current_egl_context
 
