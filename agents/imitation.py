@@ -277,8 +277,9 @@ def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = N
                  temperature: float = 1.0, stop_at: float | None = None):
     """(action, next hidden state): the mean / most likely action, or with ``rng`` (discrete head) one drawn from
     the policy's distribution (raised to 1 / ``temperature``); a stop (tasks that have one) only when it is the most
-    likely action or, with ``stop_at`` and ``rng``, when its probability reaches ``stop_at`` (a stop is never drawn
-    by chance: it would end the episode). ``egomap``: the (C, H, W) uint8 map of a policy that reads one.
+    likely action or, with ``stop_at`` and ``rng``, when its probability reaches ``stop_at``; ``stop_at`` says a
+    stop gate applies (:func:`agents.maps.allowed_actions`): where ``allowed`` lets the stop through, it is also
+    drawn from the distribution as every other action (session 70), elsewhere never (it would end the episode). ``egomap``: the (C, H, W) uint8 map of a policy that reads one.
     ``allowed`` (discrete head): a bool per action; the others' probabilities are set to 0 before drawing or taking
     the most likely one, unless that leaves none."""
     dev = model.device
@@ -297,7 +298,8 @@ def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = N
             return table[best], h
         if stop_at is not None and stop.any() and float(prob[stop].sum()) >= stop_at * float(prob.sum()):
             return table[int(np.argmax(np.where(stop, prob, -1.0)))], h
-        prob = np.where(stop, 0.0, prob)
+        if stop_at is None or allowed is None or not np.any(allowed & stop):
+            prob = np.where(stop, 0.0, prob)  # a stop is drawn only where a gate lets it (stop_at: the gate applies)
         if temperature != 1.0:
             prob = prob / prob.max()  # 1 at the most likely action: no underflow of the power
             prob = prob ** (1.0 / temperature)

@@ -20,7 +20,11 @@ gate stop only where the stop is their most likely action. Imitation labels the 
 goal it was rarely the most likely action and the robot drove on until it timed out: on the 200 test episodes the
 gate and 0.1 took the route av-nav from 34.0% to 37.5% SR, 7 episodes gained and none lost, ``savi`` (since session
 69) from 33.0% to 35.0% (4 gained, none lost) and ``multitask`` from 32.0% to 34.5% (6 gained, 1 lost) (README, "When a
-learned navigator stops"). ``stop_at = None`` plays the rule before the gate."""
+learned navigator stops"). Since session 70 the route's sem-nav also counts itself arrived once the robot the
+policy drives is beside its target (:attr:`agents.navmap.RouteNavMap.BESIDE_M`), not only on its own approach cell,
+and with the gate open the stop is also drawn from the policy's distribution, as every other action is: policies
+that pinned themselves against the goal, or stood at it with the stop's probability a few hundredths, until they
+timed out now stop there (README). ``stop_at = None`` plays the rule before the gate."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -78,8 +78,10 @@ def floor_shield(model, ego, horizon_s: float | None = SHIELD_S):
 def stop_gate(model, ego):
     """The actions a policy with a stop action (SemanticAudioNav) that reads sem-nav's route
     (:class:`agents.navmap.RouteNavMap`) may take now: every one but the stop, which only while the route's sem-nav
-    faces the target it would stop beside (the map then draws the line to it); None (no restriction) for other
-    policies. Call it after ``ego.observe``."""
+    faces the target it would stop beside (the map then draws the line to it; it turns to face it on its approach cell
+    or, since session 70, wherever the robot is beside it: ``RouteNavMap.BESIDE_M``); None (no restriction) for other
+    policies. Where it lets the stop through, the stop is taken at ``STOP_AT`` and else drawn at its own odds
+    (:func:`agents.imitation._policy_step`). Call it after ``ego.observe``."""
     from agents.navmap import RouteNavMap
 
     if not model.discrete or not isinstance(ego, RouteNavMap) or model.table.shape[1] != 3:

@@ -265,6 +265,11 @@ class RouteNavMap(SemNavMap):
 
     CHANNELS = 6
     teach = True  # sem-nav acts every step, to draw its route (its action is the label only with --teacher scripted)
+    #: m: the route's sem-nav counts itself arrived (and draws the line to face its target, which opens the stop gate)
+    #: once the robot is this close to the target (:attr:`agents.semnav.SemNavAgent.BESIDE_M`; session 70), as the
+    #: policies play and as DAgger labels (a learner that drives up beside the target is told to face it and stop);
+    #: None: only on its approach cell
+    BESIDE_M = 0.3
 
     @staticmethod
     def teacher_class():
@@ -272,6 +277,10 @@ class RouteNavMap(SemNavMap):
         from agents.semnav import RouteTeacher
 
         return RouteTeacher
+
+    def reset(self, env, obs, info) -> None:
+        super().reset(env, obs, info)
+        self.teacher.BESIDE_M = self.BESIDE_M
 
     def observe(self, obs, info) -> np.ndarray:
         img = super().observe(obs, info)

@@ -154,6 +154,11 @@ class SemNavAgent(MapAgent):
     POST_M = 2.5  # m of path per nat of log-posterior below the grid's best
     POST_REACH = 1.0  # m: a place is worth the best cell of the grid within this of it
     POST_REJECT = 6.0  # nats below the best: a sighting passed over until LATE
+    # m: where someone else drives (a route map's policy, which seldom ends on the approach cell), it also counts itself
+    # arrived once the robot is this close to its target's sighted cells, or no farther from them than the approach
+    # cell is plus BESIDE_TOL (:meth:`_beside`); None: only at the approach cell (sem-nav driving itself)
+    BESIDE_M: float | None = None
+    BESIDE_TOL = 0.1
 
     def env_kwargs(self) -> dict:
         return {"sensors": ("depth", "semantic", "spectrogram", "audio", "pose", "bump")}
@@ -397,6 +402,8 @@ class SemNavAgent(MapAgent):
 
     def act(self, obs, info):
         p, yaw = self._pose(obs)
+        if self.mode == "approach" and self._beside(p):
+            self.mode = "face"
         self._observe(obs, p, yaw)
         self.steps += 1
         if self.stop_dim and self.steps >= self.max_steps:
@@ -439,6 +446,19 @@ class SemNavAgent(MapAgent):
             return self._out(turn)
         return self._out(_pursue(p, yaw, self.path[self.k], self.robot, self.dt,
                                  slow_within=0.3 if self.mode == "approach" else 0.0))
+
+    def _beside(self, p) -> bool:
+        """Whether the robot at ``p`` is beside the target it approaches, given ``BESIDE_M`` (else False): within
+        ``BESIDE_M`` of the target's sighted cells, or no farther from them than the approach cell plus
+        ``BESIDE_TOL``. Only where the task has a stop action: on AudioGoal a face there marks the sighting visited.
+        A policy that drives up to a shower (sighted floor: the approach cell inside it) or pins itself against the
+        object an arm's length from the approach cell is beside it, and the route then shows the line to face it."""
+        if self.BESIDE_M is None or not self.stop_dim or self.target is None:
+            return False
+        cells = self.target[1]
+        here = float(np.min(np.linalg.norm(cells - p, axis=1)))
+        there = float(np.min(np.linalg.norm(cells - self.target[0], axis=1)))
+        return here <= max(there + self.BESIDE_TOL, self.BESIDE_M)
 
     def _mark_contact(self, p, yaw) -> None:
         """A bump: obstacle cells where the robot's front touched (ahead and 30 degrees either side)."""

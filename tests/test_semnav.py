@@ -134,6 +134,7 @@ def test_the_route_map_draws_the_way_sem_nav_would_go():
         m = RouteNavMap2()
         m.reset(env, obs, info)
         assert type(m.teacher) is SemNavAgent and m.teacher.DILATE_LESS
+        assert m.teacher.BESIDE_M == RouteNavMap.BESIDE_M  # arrived beside its target, not only on its approach cell
         drawn, modes = 0, set()
         for _ in range(60):
             img = m.observe(obs, info)
@@ -156,6 +157,14 @@ def test_the_route_map_draws_the_way_sem_nav_would_go():
             obs, _, term, trunc, info = env.step(np.asarray(m.action, np.float32))
             assert not (term or trunc)
         assert "spin" in modes and drawn >= 20, (modes, drawn)
+        # beside its target (0.25 m from a sighted cell, its approach cell 2 m off): the route's sem-nav turns to face
+        # it, which draws the line to it at 255 and opens the stop gate; sem-nav driving itself would drive on
+        x, y = (float(v) for v in obs["pose"][:2])
+        for beside, mode in ((m.teacher.BESIDE_M, "face"), (None, "approach")):
+            m.teacher.BESIDE_M, m.teacher.mode, m.teacher.since_plan = beside, "approach", 0
+            m.teacher.target = (np.array([x + 2.0, y]), np.array([[x + 0.25, y], [x + 0.35, y]]))
+            img = m.observe(obs, info)
+            assert m.teacher.mode == mode and (mode != "face" or img[5].max() == 255), (beside, m.teacher.mode)
     finally:
         env.close()
     pol = build_policy(ImitationConfig(task="AudioGoal", egomap=True, route=True), (2, 65, 26), 2)

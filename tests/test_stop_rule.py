@@ -88,6 +88,62 @@ def test_a_route_policy_may_stop_only_while_its_maps_sem_nav_faces_its_target():
     assert allowed_actions(m, ego, stop_at=None) == (None, None)  # the rule before the gate: no mask
 
 
+def test_with_the_gate_open_a_stop_below_stop_at_is_drawn_at_its_own_odds():
+    """Where the stop gate lets the stop through (sem-nav faces its target) and its probability is below ``stop_at``,
+    the stop is drawn from the policy's distribution as every other action (session 70): over 3,000 draws at
+    p = 0.05 the share of stops lies within 4 standard errors of 0.05. With the gate shut, or without a gate
+    (``stop_at`` None, the rule before it), it is never drawn."""
+    from types import SimpleNamespace
+
+    from agents.imitation import _policy_step
+    from agents.maps import allowed_actions
+    from agents.navmap import RouteNavMap2
+
+    _, m, stop, obs = _policy_with_a_stop(0.0, 2.0)  # straight ahead the most likely
+    with torch.no_grad():  # the stop at 0.05 of the mass, below STOP_AT
+        logits = m.actor.bias.detach().double().clone()
+        rest = torch.logsumexp(torch.cat([logits[:stop], logits[stop + 1:]]), 0)
+        m.actor.bias[stop] = float(rest + np.log(0.05 / 0.95))
+    p_stop = float(torch.softmax(m.actor.bias.detach().double(), 0)[stop])
+    assert abs(p_stop - 0.05) < 1e-6
+    ego = RouteNavMap2.__new__(RouteNavMap2)
+    ego.teacher = SimpleNamespace(mode="face")
+    allowed, stop_at = allowed_actions(m, ego)
+    assert allowed[stop] and stop_at > p_stop
+    rng, n = np.random.default_rng(4), 3000
+    h0 = m.initial_state(1)
+    share = np.mean([_policy_step(m, obs, h0, True, rng, allowed=allowed, stop_at=stop_at)[0][2] > 0 for _ in range(n)])
+    assert abs(share - p_stop) < 4 * np.sqrt(p_stop * (1 - p_stop) / n), share
+    ego.teacher.mode = "approach"
+    allowed, stop_at = allowed_actions(m, ego)
+    assert not any(_policy_step(m, obs, h0, True, rng, allowed=allowed, stop_at=stop_at)[0][2] > 0 for _ in range(300))
+    every = np.ones(len(allowed), bool)
+    assert not any(_policy_step(m, obs, h0, True, rng, allowed=every)[0][2] > 0 for _ in range(300))
+
+
+def test_the_routes_sem_nav_counts_itself_beside_its_target_near_it_not_only_on_its_approach_cell():
+    """``SemNavAgent._beside`` (the route map's teacher, ``RouteNavMap.BESIDE_M`` 0.3 m): a robot the policy pinned
+    against its target an arm's length from the approach cell, or standing at a shower whose sighted floor holds the
+    approach cell, is beside it; one 0.1 m farther than the approach cell's gap plus the tolerance is not. sem-nav
+    driving itself (``BESIDE_M`` None) and tasks without a stop action (AudioGoal) arrive only on the approach cell."""
+    from agents.navmap import RouteNavMap
+    from agents.semnav import SemNavAgent
+
+    assert SemNavAgent.BESIDE_M is None and RouteNavMap.BESIDE_M == 0.3
+    ag = SemNavAgent.__new__(SemNavAgent)
+    ag.BESIDE_M, ag.stop_dim = 0.3, True
+    cells = np.array([[1.0, y] for y in np.arange(-0.5, 0.51, 0.1)])  # a sofa's edge along x = 1
+    ag.target = (np.array([0.45, 0.6]), cells)  # its approach cell 0.55 m from it (off to the side)
+    assert ag._beside(np.array([0.4, 0.0]))  # 0.6 m: the approach cell's 0.55 + 0.1 covers it
+    assert not ag._beside(np.array([0.3, 0.0]))  # 0.7 m
+    ag.target = (np.array([1.0, 0.0]), cells)  # a shower: the approach cell on its sighted floor
+    assert ag._beside(np.array([0.75, 0.3])) and not ag._beside(np.array([0.65, 0.3]))  # 0.25 and 0.35 m
+    ag.stop_dim = False
+    assert not ag._beside(np.array([0.75, 0.3]))
+    ag.stop_dim, ag.BESIDE_M = True, None
+    assert not ag._beside(np.array([0.75, 0.3]))
+
+
 def test_ppo_draws_through_the_floor_shield_and_scores_what_it_drew_under_it():
     """PPO's policy distribution under the floor shield's mask (a map policy fine-tuned as it plays): a forbidden
     action is never drawn, the allowed ones keep their relative odds (log-probabilities renormalised over them),
