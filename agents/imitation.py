@@ -279,7 +279,8 @@ def _policy_step(model, obs, h, start: bool, rng: np.random.Generator | None = N
     the policy's distribution (raised to 1 / ``temperature``); a stop (tasks that have one) only when it is the most
     likely action or, with ``stop_at`` and ``rng``, when its probability reaches ``stop_at``; ``stop_at`` says a
     stop gate applies (:func:`agents.maps.allowed_actions`): where ``allowed`` lets the stop through, it is also
-    drawn from the distribution as every other action (session 70), elsewhere never (it would end the episode). ``egomap``: the (C, H, W) uint8 map of a policy that reads one.
+    drawn from the distribution as every other action (session 70), elsewhere never (it would end the episode).
+    ``egomap``: the (C, H, W) uint8 map of a policy that reads one.
     ``allowed`` (discrete head): a bool per action; the others' probabilities are set to 0 before drawing or taking
     the most likely one, unless that leaves none."""
     dev = model.device

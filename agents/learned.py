@@ -15,17 +15,18 @@ time in band stayed where it was (0.720 against 0.734, paired -0.014 [-0.066, +0
 
 A policy with a stop action (SemanticAudioNav) that reads sem-nav's route may stop only while the route's sem-nav
 faces the target it would stop beside (:func:`agents.maps.stop_gate`), and there stops once the stop's probability
-reaches ``stop_at`` (0.1); outside the gate a stop is never drawn by chance (it would end the episode), and
-policies without the gate stop only where the stop is their most likely action. Imitation labels the stop once an episode, so beside the
-goal it was rarely the most likely action and the robot drove on until it timed out: on the 200 test episodes the
-gate and 0.1 took the route av-nav from 34.0% to 37.5% SR, 7 episodes gained and none lost, ``savi`` (since session
-69) from 33.0% to 35.0% (4 gained, none lost) and ``multitask`` from 32.0% to 34.5% (6 gained, 1 lost) (README, "When a
-learned navigator stops"). Since session 70 the route's sem-nav also counts itself arrived once the robot the
-policy drives is beside its target (:attr:`agents.navmap.RouteNavMap.BESIDE_M`), not only on its own approach cell,
-and with the gate open the stop is also drawn from the policy's distribution, as every other action is: policies
-that pinned themselves against the goal, or stood at it with the stop's probability a few hundredths, until they
-timed out now stop there: on the 200 test episodes savi 35.0% -> 36.5% (4 gained, 1 lost), multitask 34.5% -> 36.5%
-(6 gained, 2 lost), av-nav 37.5% both ways (README). ``stop_at = None`` plays the rule before the gate."""
+reaches ``stop_at`` (0.1); outside the gate a stop is never drawn by chance (it would end the episode), and policies
+without the gate stop only where the stop is their most likely action. Imitation labels the stop once an episode, so
+beside the goal it was rarely the most likely action and the robot drove on until it timed out: on the 200 test
+episodes the gate and 0.1 took the route av-nav from 34.0% to 37.5% SR, 7 episodes gained and none lost, ``savi``
+(since session 69) from 33.0% to 35.0% (4 gained, none lost) and ``multitask`` from 32.0% to 34.5% (6 gained, 1
+lost) (README, "When a learned navigator stops"). Since session 70 the route's sem-nav also counts itself arrived
+once the robot the policy drives is beside its target (:attr:`agents.navmap.RouteNavMap.BESIDE_M`), not only on its
+own approach cell, and with the gate open the stop is also drawn from the policy's distribution, as every other
+action is: policies that pinned themselves against the goal, or stood at it with the stop's probability a few
+hundredths, until they timed out now stop there: on the 200 test episodes savi 35.0% -> 36.5% (4 gained, 1 lost),
+multitask 34.5% -> 36.5% (6 gained, 2 lost), av-nav 37.5% both ways (README). ``stop_at = None`` plays the rule
+before the gate."""
 from __future__ import annotations
 
 from pathlib import Path
