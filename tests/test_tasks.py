@@ -365,7 +365,8 @@ def test_bench_env_reports_steps_per_second(cli):
     r = cli("bench", "env", "--steps", "40", "--workers", "0", check_rc=0)
     b = json.loads(r.stdout)
     assert b["steps_per_s"] > 0 and b["reference_depth_renders_per_s"] > 0
-    assert set(b["breakdown_ms"]) >= {"physics_ms", "audio_render_ms", "spectrogram_ms", "depth_render_ms"}
+    assert set(b["breakdown_ms"]) >= {"physics_ms", "audio_render_ms", "spectrogram_ms", "depth_render_ms",
+                                      "audio_render_carrying_ms"}
 
 
 def test_spectrogram_frames_match_the_librosa_definition_and_the_stream_equals_the_full_stft():

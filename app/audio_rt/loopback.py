@@ -338,10 +338,11 @@ def random_sources(spec: str | None, n: int, seed: int = 0, gain: float = 0.05):
 def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "builtin:apartment",
                   mode: str = "process", load: str = "none", robots: int = 1, device=None,
                   sample_rate: int = 48000, block: int = 256, view: int = 512, seed: int = 0,
-                  progress=None) -> dict:
+                  progress=None, door_every: float | None = None) -> dict:
     """Open the duplex stream with the scene, wire its output to its input, run for ``seconds`` while the frame
     loop hands poses at frame rate (load='frames': it also renders stereo views as fast as it can), and measure
-    round trip, xruns and callback timing."""
+    round trip, xruns and callback timing. ``door_every``: every that many seconds the frame loop opens or shuts
+    one of the scene's doors (each in turn), as a VR user's trigger does (``door_moves`` counts them)."""
     from app.audio_rt.config import AudioConfig, AudioScene
     from app.audio_rt.engine import AudioEngine
     from sonicverse_core.errors import ConfigError
@@ -349,6 +350,13 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
     if not (0.5 <= seconds <= 3600) or not (0 <= sources <= 1024) or load not in ("none", "frames"):
         raise ConfigError("--seconds must be 0.5-3600, --sources 0-1024, --load none or frames")
     srcs, head = random_sources(spec, sources, seed)
+    n_doors = 0
+    if door_every is not None:
+        from sonicverse_core.scene.spec import load_scene
+
+        n_doors = len(load_scene(spec).doors) if spec else 0
+        if not n_doors:
+            raise ConfigError(f"--door-every: {spec or 'the free field'} has no doors")
     robo = [(head[0] + 1.0, head[1], 0.4, 180.0)] * robots
     cfg = AudioConfig(device=device, sample_rate=sample_rate, block=block, mode=mode, test_signal=True,
                       ring_seconds=4.0)
@@ -375,10 +383,15 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
         sent, back, frames = [], [], []
         t0 = time.perf_counter()
         t = 0.0
+        doors, moves = (eng._door_values.copy() if n_doors else None), 0
         while t < seconds:
             yaw = 30.0 * t
             h = (head[0] + 0.3 * np.sin(0.5 * t), head[1] + 0.3 * np.cos(0.5 * t), head[2], yaw, 0.0)
-            eng.set_poses(h, robots=robo, t=t)
+            if n_doors and t >= (moves + 1) * door_every:  # a door opens or shuts (each in turn)
+                k = moves % n_doors
+                doors[k] = 0.0 if doors[k] > 0.5 else 1.0
+                moves += 1
+            eng.set_poses(h, robots=robo, t=t, doors=doors)
             if vis is not None:
                 vis.render_stereo(h[:4])
             else:
@@ -427,6 +440,7 @@ def loopback_test(seconds: float = 10.0, sources: int = 16, spec: str | None = "
         "frames": len(fr), "frame_ms_p50": round(float(np.median(fr)), 2) if fr.size else None,
         "frame_ms_p99": round(float(np.percentile(fr, 99)), 2) if fr.size else None,
         "view": [2, view, view] if load == "frames" else None, "subsystems": info["subsystems"],
+        "door_every_s": door_every, "door_moves": moves,
     }
 
 

@@ -80,7 +80,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                 sample_rate: int = 48000, block: int = 256, reference_blocks: int = 20, per_room: bool = True,
                 reverb: str = "convolution", er_images: str = "room", er_order: int = 1,
                 neighbour_tails: int | None = None, listener_room: str | None = None, walk: float = 0.15,
-                tail_partitions: str = "auto", breakdown: bool = False) -> dict:
+                tail_partitions: str = "auto", breakdown: bool = False, door_every: float | None = None) -> dict:
     """Per-block cost of the full pipeline (HRTF, occlusion, propagation paths, early reflections, coupled late
     reverb) as a fraction of the block's duration (and, per listener, how many sources it hears along paths, how
     many room tails it convolves and from how many rooms sources send to it), with the listener walking and turning every block (so every source's direction, delay and
@@ -101,7 +101,13 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     preempted, or waiting in the kernel); and the first 20 blocks' indices.
     The walk is the same in every run, so a block that is late because of the renderer is late again at the same
     index in a re-run, and a stall of the machine is not (a virtual CPU that its host stops may still count as the
-    thread's CPU time)."""
+    thread's CPU time).
+    ``door_every``: every that many seconds of audio one of the scene's doors (in turn) opens if shut or shuts if
+    open, as the live audio core applies it (:meth:`app.audio_rt.core.RenderCore._apply_doors`): after a block,
+    the door moved and the occlusion's geometry prepared (``doors.apply``, a fraction of the block's duration),
+    then the next block renders the change (``doors.block``; the early reflections' walls are cast again in the
+    block after it, ``doors.next_block``). A live stream must fit each in a block (the live core spends the first
+    after writing a block's output, in the same callback); ``over_real_time`` counts those that did not."""
     from scipy.signal import oaconvolve
 
     from sonicverse_core.acoustics.renderer import RenderConfig
@@ -134,6 +140,13 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
     omega = walk / 0.3  # rad/s round the circle (0.5 at the default 0.15 m/s)
     times, cpu = np.empty(n_blocks), np.empty(n_blocks)  # each block's wall time and its thread's CPU time
     paths, reverbs, sending = (np.zeros(n_blocks, int) for _ in range(3))
+    doors = r.scene.doors if door_every else []
+    if door_every and not doors:
+        from sonicverse_core.errors import ConfigError
+
+        raise ConfigError(f"--door-every: {spec} has no doors")
+    every = max(1, int(round(door_every / block_s))) if doors else 0
+    applied, door_blocks, next_blocks, door_at = [], [], [], set()
     from sonicverse_core.progress import progress
 
     import gc
@@ -157,6 +170,18 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
             c0 = time.thread_time()
             t0 = time.perf_counter()
             r.render_block()
+            if i >= 0 and i in door_at:
+                door_blocks.append((time.perf_counter() - t0) / block_s)
+            if i >= 0 and i - 1 in door_at:
+                next_blocks.append((time.perf_counter() - t0) / block_s)
+            if every and i >= 0 and (i + 1) % every == 0 and i + 1 < n_blocks:  # after this block: a door moves
+                d = doors[len(applied) % len(doors)]
+                a0 = time.perf_counter()
+                r.scene.set_door(d.name, 0.0 if d.open_fraction > 0.5 else 1.0)
+                if r.occlusion is not None:
+                    r.occlusion.prepare()
+                applied.append((time.perf_counter() - a0) / block_s)
+                door_at.add(i + 1)
             if i >= 0:
                 times[i] = time.perf_counter() - t0
                 cpu[i] = time.thread_time() - c0
@@ -204,6 +229,12 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
                          "rooms_sending_to_the_reverb": {"mean": round(float(sending.mean()), 2),
                                                          "max": int(sending.max())}},
     }
+    if every:
+        ab, db, nb = np.array(applied), np.array(door_blocks), np.array(next_blocks)
+        res["doors"] = {"every_s": door_every, "moves": len(ab),
+                        **{k: {"median": round(float(np.median(v)), 4), "max": round(float(v.max()), 4)}
+                           for k, v in (("apply", ab), ("block", db), ("next_block", nb)) if len(v)},
+                        "over_real_time": int((ab > 1).sum() + (db > 1).sum() + (nb > 1).sum())}
     if breakdown:
         mixes, mix_s = spent.pop("late re-mixes", 0), spent.pop("late re-mix", 0.0)  # inside the late share
         shares = {k: v / n_blocks / block_s for k, v in spent.items()}

@@ -183,6 +183,9 @@ def add_audio_commands(sub, bench_sub) -> None:
                     "walking in VR: about 1-1.4)")
     ba.add_argument("--breakdown", action="store_true",
                     help="also report each subsystem's mean share of the block (per_subsystem)")
+    ba.add_argument("--door-every", type=A.number(0.01, 3600, unit="s"), default=None, metavar="S",
+                    help="every S seconds of audio a door (each in turn) opens or shuts; report the cost of applying "
+                    "it and of the block that renders it (doors)")
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",
@@ -263,7 +266,7 @@ def cmd_bench_audio(a) -> int:
                                  per_room=a.per_room, reverb=a.reverb, er_images=a.er_images,
                                  er_order=a.er_order, neighbour_tails=a.neighbour_tails,
                                  listener_room=a.listener_room, walk=a.walk, tail_partitions=a.tail_partitions,
-                                 breakdown=a.breakdown)))
+                                 breakdown=a.breakdown, door_every=a.door_every)))
     return 0
 
 

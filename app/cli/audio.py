@@ -39,7 +39,7 @@ def cmd_loopback(a) -> int:
 
     res = loopback_test(a.seconds, a.sources, None if a.scene == "none" else a.scene, a.mode, a.load, a.robots,
                         _device(a.device), a.sample_rate, a.block, a.view,
-                        progress=lambda e: print(f"sonicverse: {e}", file=sys.stderr))
+                        progress=lambda e: print(f"sonicverse: {e}", file=sys.stderr), door_every=a.door_every)
     if a.json:
         print(json.dumps(res))
     else:
@@ -167,6 +167,8 @@ def add_commands(sub) -> None:
     lb.add_argument("--load", default="none", choices=["none", "frames"],
                     help="'frames': the frame loop renders stereo views as fast as it can meanwhile")
     lb.add_argument("--view", type=A.count(16, 4096), default=512, help="eye resolution with --load frames")
+    lb.add_argument("--door-every", type=A.number(0.05, 3600, unit="s"), default=None, metavar="S",
+                    help="every S seconds a door of the scene (each in turn) opens or shuts, as a VR user's trigger")
     stream_args(lb)
     lb.set_defaults(func=cmd_loopback)
 

@@ -35,9 +35,18 @@ import numpy as np
 from scipy import ndimage
 
 from sonicverse_core.scene.materials import BANDS, material_arrays
+from sonicverse_core.acoustics.paths import DOOR_STATES
 
 OPENING_HEIGHT = 2.0
 _SPLITS = [0]  # late splits made in this process: each one's "gen", a key that never repeats
+
+
+def _remember(cache: dict, key, value) -> None:
+    """``cache[key] = value``, the oldest entry dropped beyond ``DOOR_STATES``."""
+    cache.pop(key, None)
+    cache[key] = value
+    while len(cache) > DOOR_STATES:
+        cache.pop(next(iter(cache)))
 
 
 class RoomCoupling:
@@ -73,8 +82,9 @@ class RoomCoupling:
         for k, r in enumerate(self.rooms):
             if any(p.room == r.name for p in probes or []):
                 self.A[k] = np.maximum(self.A[k] - self.S_open[k], 0.1 * self.A[k])
-        self._cache: dict = {}
-        self._split: dict = {}
+        self._cache: dict = {}  # door state (apertures) -> transfer (the last DOOR_STATES met)
+        self._split: dict = {}  # door state -> late_split (the same)
+        self._T_now = self._split_now = None
         self._version = self._split_version = None
 
     def _slice_coupling(self) -> None:
@@ -151,21 +161,27 @@ class RoomCoupling:
     def transfer(self) -> np.ndarray:
         """(R, R, 9) amplitude: sqrt(E_l / E_s) for a source in room s heard in room l, the doors as they are now
         (cached per door state)."""
-        if self._version == self.scene.dynamic_version and self._cache:
-            return next(iter(self._cache.values()))
+        if self._version == self.scene.dynamic_version and self._T_now is not None:
+            return self._T_now
         self._version = self.scene.dynamic_version
         key = tuple(np.round(self.graph.apertures(), 4))
         T = self._cache.get(key)
         if T is None:
             R = len(self.rooms)
-            K = self.coupling()
-            T = np.ones((R, R, len(BANDS)))
-            for b in range(len(BANDS)):
-                M = np.diag(self.A[:, b] + K[:, :, b].sum(1)) - K[:, :, b]
-                E = np.linalg.solve(M, np.eye(R))  # column s: a unit source in room s
-                T[:, :, b] = np.sqrt(np.maximum(E / np.diag(E)[None, :], 0.0)).T  # [s, l]
-            self._cache = {key: T}
+            E = np.linalg.inv(self._balance(self.coupling()))  # (9, R, R); column s: a unit source in room s
+            d = np.diagonal(E, axis1=1, axis2=2)  # (9, R)
+            T = np.ascontiguousarray(np.sqrt(np.maximum(E / d[:, None, :], 0.0)).transpose(2, 1, 0))  # [s, l, band]
+            _remember(self._cache, key, T)
+        self._T_now = T
         return T
+
+    def _balance(self, K: np.ndarray) -> np.ndarray:
+        """(9, R, R) per band the energy balance's matrix M = diag(A_i + sum_j K_ij) - K for couplings K (R, R, 9)."""
+        Kb = K.transpose(2, 0, 1)
+        M = -Kb
+        i = np.arange(len(self.rooms))
+        M[:, i, i] += self.A.T + Kb.sum(2)
+        return M
 
     def open_share(self) -> np.ndarray:
         """(R,) the part of each room's doorway and opening area that is open now (1 for a room without any)."""
@@ -195,42 +211,36 @@ class RoomCoupling:
           times where that is quicker (a chain of build-ups: their mean delays add), so rooms that share only a
           wall but each a door with a third fill through the third;
         * ``open`` (R,): :meth:`open_share`; ``gen``: a number no other split in this process has."""
-        if self._split and self._split_version == self.scene.dynamic_version:  # per block: no door moved
-            return next(iter(self._split.values()))
+        if self._split_now is not None and self._split_version == self.scene.dynamic_version:  # no door moved
+            return self._split_now
         self._split_version = self.scene.dynamic_version
         key = tuple(np.round(self.graph.apertures(), 4))
-        if key in self._split:
-            return self._split[key]
-        R, nb = len(self.rooms), len(BANDS)
+        if key in self._split:  # a door state met before (a door shut and opened again)
+            self._split_now = self._split[key]
+            return self._split_now
         K = self.coupling()
         c = 343.0
-        energy, slow = np.zeros((R, R, nb)), np.zeros((R, R, nb))
-        slow_rt, own_rt = np.zeros(nb), np.zeros((R, nb))
-        modes_rt, modes_share = np.zeros((R, nb)), np.zeros((R, R, R, nb))
+        M = self._balance(K)  # (9, R, R), every band at once
+        energy = np.ascontiguousarray(16 * np.pi * np.linalg.inv(M).transpose(2, 1, 0))  # [s, l, band]
         sq = np.sqrt(self.V)
-        U0 = None
-        for b in range(nb):
-            M = np.diag(self.A[:, b] + K[:, :, b].sum(1)) - K[:, :, b]
-            energy[:, :, b] = 16 * np.pi * np.linalg.inv(M).T  # [s, l]
-            lam, U = np.linalg.eigh((c / 4) * M / np.outer(sq, sq))  # symmetric: V^-1/2 M V^-1/2
-            lam = np.maximum(lam, 1e-9)
-            # E_l(t) after a unit impulse in room s: sum_k U_lk U_sk / sqrt(V_l V_s) exp(-lam_k t)
-            w = U[:, None, :] * U[None, :, :] / lam[None, None, :]  # [l, s, k] time integrals
-            tot = w.sum(2)
-            share = np.clip(np.where(tot[:, :, None] > 0, w / np.where(tot > 0, tot, 1.0)[:, :, None], 0.0), 0.0, 1.0)
-            modes_share[:, :, :, b] = share.transpose(2, 1, 0)  # [k, s, l]
-            modes_rt[:, b] = 13.8155 / lam
-            slow[:, :, b] = modes_share[0, :, :, b]
-            slow_rt[b] = modes_rt[0, b]
-            own_rt[:, b] = 13.8155 / ((c / 4) * np.diag(M) / self.V)
-            if b == 5:
-                U0 = U
+        lam, U = np.linalg.eigh((c / 4) * M / np.outer(sq, sq))  # symmetric: V^-1/2 M V^-1/2; (9, R), (9, R, R)
+        lam = np.maximum(lam, 1e-9)
+        # E_l(t) after a unit impulse in room s: sum_k U_lk U_sk / sqrt(V_l V_s) exp(-lam_k t)
+        w = U[:, :, None, :] * U[:, None, :, :] / lam[:, None, None, :]  # [band, l, s, k] time integrals
+        tot = w.sum(3)
+        share = np.clip(np.where(tot[..., None] > 0, w / np.where(tot > 0, tot, 1.0)[..., None], 0.0), 0.0, 1.0)
+        modes_share = np.ascontiguousarray(share.transpose(3, 2, 1, 0))  # [k, s, l, band]
+        modes_rt = np.ascontiguousarray((13.8155 / lam).T)  # (R, 9)
+        slow, slow_rt = modes_share[0], modes_rt[0]
+        own_rt = np.ascontiguousarray((13.8155 / ((c / 4) * np.diagonal(M, axis1=1, axis2=2) / self.V)).T)
+        U0 = U[5]
         _SPLITS[0] += 1
         out = {"buildup_tau": self._buildup_tau(K, c), "energy": energy, "slow": slow, "slow_rt": slow_rt,
                "own_rt": own_rt,
                "slow_room": int(np.argmax(U0[:, 0] ** 2)), "modes_rt": modes_rt, "modes_share": modes_share,
                "modes_room": np.argmax(U0 ** 2, axis=0), "open": self.open_share(), "gen": _SPLITS[0]}
-        self._split = {key: out}
+        _remember(self._split, key, out)
+        self._split_now = out
         return out
 
     def _buildup_tau(self, K: np.ndarray, c: float) -> np.ndarray:

@@ -106,10 +106,20 @@ class RoomWalls:
                                   np.broadcast_to(z[None, None, :, None], (E, T, Z, 1))], axis=-1).reshape(-1, 3)
         self._d = np.repeat(np.c_[self.normal, np.zeros(E)], T * Z, axis=0)
         near = np.zeros(len(self._o), bool)
+        self.doors_near = set()  # the doors (names) whose leaves reach some of these walls' samples
         for door in doors:  # within a leaf's reach of its hinge
-            near |= np.hypot(*(self._o[:, :2] - np.asarray(door.hinge, float)).T) < door.width + 0.5
+            reach = np.hypot(*(self._o[:, :2] - np.asarray(door.hinge, float)).T) < door.width + 0.5
+            near |= reach
+            if reach.any():
+                self.doors_near.add(door.name)
         self.near_door = np.flatnonzero(near)
         self.table = self._cast(np.arange(len(self._o)), dynamic=False).reshape(E, T, Z)
+        # the static structure's first hit of the samples near doors, kept: a door's move casts them through the
+        # dynamic geometry alone and takes the nearer hit (the same answer as casting both again)
+        h = caster.static.first_hit(self._o[self.near_door], self._d[self.near_door], 0.6)
+        self._near_static = (h.distance, h.material)
+        self._near_still = (None, None, None)  # (the still objects' build, distance, material): with them too
+        self._near_max = np.full(len(self.near_door), 0.6)
         self._open = self.table.reshape(-1) == 0  # openings of the structure, whatever state the doors are in
         self.refresh()
         # floor and ceiling: rays down and up from points inside the footprint
@@ -130,9 +140,24 @@ class RoomWalls:
         return self._refl[np.where(h.hit & (h.distance <= 0.35), h.material, -1)]
 
     def refresh(self) -> None:
-        """Cast the samples near doors again, through the doors as they are now."""
-        if len(self.near_door):
-            self.table.reshape(-1)[self.near_door] = self._cast(self.near_door, dynamic=True)
+        """Cast the samples near doors again, through the doors as they are now (the dynamic geometry only; the
+        static structure's hits of them were kept)."""
+        if not len(self.near_door):
+            return
+        dist, mat = self._near_static
+        if self.caster.scene.objects:
+            dyn = self.caster.dynamic
+            o, d = self._o[self.near_door], self._d[self.near_door]
+            if self._near_still[0] != dyn.version("still"):  # the objects that have not moved: cast once per build
+                g = dyn.first_hit(o, d, 0.6, groups=("still",))
+                closer = g.distance < dist
+                self._near_still = (dyn.version("still"), np.where(closer, g.distance, dist),
+                                    np.where(closer, g.material, mat))
+            _, dist, mat = self._near_still
+            f, t = dyn.faces(o, d, self._near_max, groups=("movers",))  # the doors and whatever else has moved
+            closer = (f >= 0) & (t < dist)
+            dist, mat = np.where(closer, t, dist), np.where(closer, dyn.mesh.face_material[np.maximum(f, 0)], mat)
+        self.table.reshape(-1)[self.near_door] = self._refl[np.where(dist <= 0.35, mat, -1)]
 
     def opens_into(self, rooms) -> dict:
         """{index in ``rooms``: open area (m^2)} of the rooms this one's openings in the static structure (doorways,
@@ -234,6 +259,7 @@ class EarlyReflections:
         # rooms imaged in their own walls, each with the rooms it opens into
         self.room_images, self.walls, self._doors, self._door_poses = {}, [], [], []
         self._version = scene.dynamic_version if scene is not None else 0
+        self._stale: set = set()  # doors moved, their walls not cast again yet (render: in the block after)
         if cfg.er_images == "room" and scene is not None and scene.rooms:
             from sonicverse_core.scene.model import Door
 
@@ -350,15 +376,19 @@ class EarlyReflections:
         pd, pg, pY = st.delay[:n], st.gain[:n], st.Y[:n]
         g = st.room
         if g is not None:
-            if r.scene.dynamic_version != self._version:  # something moved; if a door did, its walls are cast again
-                self._version = r.scene.dynamic_version
-                doors = [d.pose.tobytes() for d in self._doors]
-                if doors != self._door_poses:
-                    self._door_poses = doors
-                    for w in self.walls:
+            if self._stale:  # doors that moved before the last block: the walls they reach are cast again now
+                for w in self.walls:
+                    if w.doors_near & self._stale:
                         w.refresh()
-                    for ri in self.room_images.values():
-                        ri.update()
+                for ri in self.room_images.values():
+                    ri.update()
+                self._stale = set()
+            if r.scene.dynamic_version != self._version:  # something moved; if a door did, its walls are cast again
+                self._version = r.scene.dynamic_version  # in the next block (a door's cost spread over the blocks
+                doors = [d.pose.tobytes() for d in self._doors]  # after it: the occlusion and paths first)
+                if doors != self._door_poses:
+                    self._stale |= {d.name for d, a, b in zip(self._doors, self._door_poses, doors) if a != b}
+                    self._door_poses = doors
             M = len(g.seqs)
             room_image_taps(r._pos[:n], ls.mute[:n], g.seqs, g.edges, g.normal, g.table, g.zwall, g.first, g.zf,
                             g.zc, g.rf, g.rc, lis.position, ls.R, *r._rolloff, self.bulk, SPEED_OF_SOUND, st.pts,

@@ -111,6 +111,7 @@ class Occlusion:
         self._log_trans = 0.5 * np.log(np.maximum(material_arrays()[2], 1e-12))
         self._boxes_version = None
         self._bounds = (None, None)  # (scene version, sounding_bounds)
+        self._sb: dict = {}  # object name -> (its pose's bytes, its sounding bounds): _sounding
         self._poses = {o.name: o.pose.copy() for o in scene.objects}
         self._dirty_version, self._dirty = scene.dynamic_version, None
         self.stats = {"occlusion_rays": 0, "occlusion_skipped": 0}
@@ -142,12 +143,53 @@ class Occlusion:
             if not hasattr(self, "_static_boxes"):
                 m = self.scene.static_mesh()
                 self._static_boxes = _part_bounds(m) if len(m) else (np.zeros((0, 3)), np.zeros((0, 3)))
-            dyn = self.scene.dynamic_mesh()
-            d = _part_bounds(dyn) if dyn is not None and len(dyn) else (np.zeros((0, 3)), np.zeros((0, 3)))
+            d = self._object_bounds()
             self._lo = np.concatenate([self._static_boxes[0], d[0]]) - 1e-3
             self._hi = np.concatenate([self._static_boxes[1], d[1]]) + 1e-3
             self._boxes_version = self.scene.dynamic_version
         return self._lo, self._hi
+
+    def _sounding(self) -> np.ndarray:
+        """:func:`sounding_bounds`, each object's kept while its pose is (a door has none: its moves change
+        nothing here; a carried object's is made again, the rest kept)."""
+        from sonicverse_core.scene.model import Door
+
+        objs = self.scene.objects
+        b = np.empty((len(objs), 2, 3))
+        for i, o in enumerate(objs):
+            if isinstance(o, Door):
+                b[i] = ((np.inf,) * 3, (-np.inf,) * 3)
+                continue
+            key = o.pose.tobytes()
+            hit = self._sb.get(o.name)
+            if hit is None or hit[0] != key:
+                hit = self._sb[o.name] = (key, o.world_bounds() + [[-0.01], [0.01]])
+            b[i] = hit[1]
+        return b
+
+    def _object_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) of every dynamic part (one per object, :func:`_part_bounds` of the dynamic mesh), each object's
+        kept while its pose is: a door that moves costs its own box, not every object's."""
+        dyn = self.scene.dynamic_mesh()
+        if dyn is None or not len(dyn):
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        objs = self.scene.objects
+        names = tuple(o.name for o in objs)
+        if getattr(self, "_ob_names", None) != names or len(dyn.part_names) != len(objs):
+            self._ob_names, self._ob = names, {}
+        P = len(dyn.part_names)
+        ends = np.searchsorted(dyn.face_part, np.arange(P + 1))  # the dynamic mesh's faces run object by object
+        lo, hi = np.full((P, 3), np.inf), np.full((P, 3), -np.inf)
+        for k, o in enumerate(objs):
+            key = o.pose.tobytes()
+            hit = self._ob.get(k)
+            if hit is None or hit[0] != key:
+                f = dyn.faces[ends[k]:ends[k + 1]]
+                v = dyn.vertices[f.reshape(-1)] if len(f) else np.zeros((0, 3))
+                hit = self._ob[k] = (key, v.min(0) if len(v) else lo[k], v.max(0) if len(v) else hi[k])
+            lo[k], hi[k] = hit[1], hit[2]
+        keep = np.isfinite(lo[:, 0])  # as _part_bounds: parts without faces have no box
+        return lo[keep], hi[keep]
 
     def prepare(self) -> None:
         """Build what the next update needs after a scene change (dynamic mesh, its ray caster, part boxes, the
@@ -213,7 +255,7 @@ class Occlusion:
             ac = a[cast]
             ray, dist, face, ci, casters = self.caster.walk(ac, np.broadcast_to(lis, (len(cast), 3)))
             if self._bounds[0] != version:
-                self._bounds = (version, sounding_bounds(self.scene))
+                self._bounds = (version, self._sounding())
             sm = casters[0][0].mesh
             dm = casters[1][0].mesh if len(casters) > 1 else sm
             logamp = np.empty((len(cast), len(BANDS)))

@@ -48,6 +48,7 @@ from sonicverse_core.scene.materials import BANDS
 _opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 
 DIFFRACTION_MODELS = ("fresnel", "none")
+DOOR_STATES = 16  # door states whose graph (and coupled rooms' balance, coupling.py) are kept
 MAX_BEND_LOSS_DB = 25.0
 MAX_NODES = 800
 MIN_POCKET = 0.2  # m: free regions whose widest point is narrower than this are inside walls, not rooms
@@ -249,6 +250,7 @@ class PathGraph:
         self.nodes = self.static_nodes
         self._edges()
         self._leaf_key = None
+        self._states: dict = {}  # leaf positions -> the graph with them (the last DOOR_STATES met)
         # two nodes by every door leaf's free end, one on each side (moved with the leaf by refresh)
         self.nodes = np.vstack([self.static_nodes, np.zeros((2 * len(self.doors), 2))])
         self.refresh()
@@ -361,16 +363,33 @@ class PathGraph:
 
     def refresh(self) -> bool:
         """Follow the doors: apertures, the leaves as obstacles, the nodes by their free ends, the edges they cut or
-        add, and the shortest paths, when a leaf moved since the last call; True when something changed."""
-        from scipy.sparse import csr_matrix
-        from scipy.sparse.csgraph import shortest_path as sp
-
+        add, and the shortest paths, when a leaf moved since the last call; True when something changed. The graphs of
+        the last ``DOOR_STATES`` leaf positions are kept: a door shut and opened again costs a look-up."""
         self.aperture = self.apertures()
         leaves = self.leaf_segments()
         key = np.round(leaves, 4).tobytes()
         if key == self._leaf_key:
             return False
         self._leaf_key = key
+        ns = len(self.static_nodes)
+        seen = self._states.pop(key, None)
+        if seen is not None:  # a door state met before (a door shut and opened again): its graph, kept
+            self._states[key] = seen
+            self.leaves, self.blocking, self.node_ok, tips, self.dist, self.pred = seen
+            self.nodes[ns:] = tips
+            return True
+        self._compute(leaves)
+        self._states[key] = (self.leaves, self.blocking, self.node_ok, self.nodes[ns:].copy(), self.dist, self.pred)
+        while len(self._states) > DOOR_STATES:
+            self._states.pop(next(iter(self._states)))
+        return True
+
+    def _compute(self, leaves: np.ndarray) -> None:
+        """:meth:`refresh`'s work for door leaves where they are now: the leaves as obstacles, the nodes by their
+        free ends, the edges they cut or add, the shortest paths."""
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import shortest_path as sp
+
         self.leaves = leaves
         self.blocking = np.ones(len(leaves), bool)
         ns, D = len(self.static_nodes), len(self.doors)
@@ -407,12 +426,11 @@ class PathGraph:
         N = len(self.nodes)
         if N == 0:
             self.dist, self.pred = np.zeros((0, 0)), np.zeros((0, 0), np.int32)
-            return True
+            return
         i, j, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(lens)
         m = csr_matrix((w + 1e-9, (i, j)), shape=(N, N))
         dist, pred = sp(m, method="D", directed=False, return_predecessors=True)
         self.dist, self.pred = dist, pred.astype(np.int32)
-        return True
 
     # --- queries ------------------------------------------------------------------------------------------------
     def grid_point(self, p) -> tuple[float, float]:

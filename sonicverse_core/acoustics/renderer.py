@@ -357,7 +357,9 @@ class AcousticRenderer:
         callback, where one costs 0.1-3 s and the audio server drops the client. Renders a block with every listener
         at each probe (each room's own early reflections; the other rooms' sources along their paths and through the
         coupled reverb) and at a spot in no room (where a probe box's images apply), two with every door moved
-        (walls and room images cast again) and one with the doors back; then puts the listeners back and clears
+        (walls and room images cast again) and one with the doors back, then two per door with it moved alone and
+        back (so the path graphs and the coupled rooms' balance of every door state one move away are made here,
+        not in the block after a user opens a door); then puts the listeners back and clears
         every listener's state as on a fresh start. Returns the blocks rendered. The live audio workers call it
         before their stream opens (``app.audio_rt``)."""
         if not self.listeners:
@@ -378,6 +380,8 @@ class AcousticRenderer:
             n += 1
         doors = self.scene.doors if self.scene is not None else []
         if doors:
+            for lis in self.listeners:  # in a room (its probe's): every part a door's move reaches runs
+                lis.position = np.array(spots[0], float)
             was = [d.open_fraction for d in doors]
             for d, f in zip(doors, was):
                 self.scene.set_door(d.name, 0.0 if f > 0.5 else 1.0)
@@ -392,6 +396,13 @@ class AcousticRenderer:
                 self.occlusion.prepare()
             self.render_block()  # the doors' return is cast and the path graph refreshed here, not in the next block
             n += 1
+            for d, f in zip(doors, was):  # each door alone, there and back: the states one move away, met ahead
+                for to in (0.0 if f > 0.5 else 1.0, f):  # (the path graph and the coupled rooms keep DOOR_STATES)
+                    self.scene.set_door(d.name, to)
+                    if self.occlusion is not None:
+                        self.occlusion.prepare()
+                    self.render_block()
+                    n += 1
         for lis, (p, yaw, pitch) in zip(self.listeners, saved):
             lis.position, lis.yaw, lis.pitch = p, yaw, pitch
         for ls in self._state:

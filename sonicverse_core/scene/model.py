@@ -117,8 +117,10 @@ class SceneObject:
     def world_bounds(self, pose: np.ndarray | None = None) -> np.ndarray:
         """(2, 3) axis-aligned bounds in world coordinates (at ``pose``, default the current one)."""
         pose = self.pose if pose is None else pose
-        corners = trimesh.bounds.corners(self.mesh.bounds)
-        w = corners @ pose[:3, :3].T + pose[:3, 3]
+        kept = self.__dict__.get("_corners")  # the proxy's corners, made once per mesh (trimesh's bounds re-hash it)
+        if kept is None or kept[0] is not self.mesh:
+            kept = self._corners = (self.mesh, trimesh.bounds.corners(self.mesh.bounds))
+        w = kept[1] @ pose[:3, :3].T + pose[:3, 3]
         return np.array([w.min(0), w.max(0)])
 
 
