@@ -357,9 +357,10 @@ class AcousticRenderer:
         callback, where one costs 0.1-3 s and the audio server drops the client. Renders a block with every listener
         at each probe (each room's own early reflections; the other rooms' sources along their paths and through the
         coupled reverb) and at a spot in no room (where a probe box's images apply), two with every door moved
-        (walls and room images cast again) and one with the doors back, then two per door with it moved alone and
-        back (so the path graphs and the coupled rooms' balance of every door state one move away are made here,
-        not in the block after a user opens a door); then puts the listeners back and clears
+        (walls and room images cast again) and one with the doors back, then one per door state a user's moves reach
+        (every open/shut combination where the kept ``DOOR_STATES`` hold them all, else each door moved alone) and
+        one with the doors back, so that their path graphs and coupled rooms' balances are made here, not in the
+        block after a user opens a door; then puts the listeners back and clears
         every listener's state as on a fresh start. Returns the blocks rendered. The live audio workers call it
         before their stream opens (``app.audio_rt``)."""
         if not self.listeners:
@@ -396,13 +397,23 @@ class AcousticRenderer:
                 self.occlusion.prepare()
             self.render_block()  # the doors' return is cast and the path graph refreshed here, not in the next block
             n += 1
-            for d, f in zip(doors, was):  # each door alone, there and back: the states one move away, met ahead
-                for to in (0.0 if f > 0.5 else 1.0, f):  # (the path graph and the coupled rooms keep DOOR_STATES)
-                    self.scene.set_door(d.name, to)
-                    if self.occlusion is not None:
-                        self.occlusion.prepare()
-                    self.render_block()
-                    n += 1
+            from sonicverse_core.acoustics.paths import DOOR_STATES
+
+            # the door states a user's moves reach, met here (the path graph and the coupled rooms keep DOOR_STATES):
+            # every open/shut combination where they all fit, else each door moved alone
+            flip = [0.0 if f > 0.5 else 1.0 for f in was]
+            if 2 ** len(doors) <= DOOR_STATES:
+                states = [[flip[k] if (m >> k) & 1 else was[k] for k in range(len(doors))]
+                          for m in range(1, 2 ** len(doors))]
+            else:
+                states = [[flip[k] if k == j else was[k] for k in range(len(doors))] for j in range(len(doors))]
+            for state in states + [was]:
+                for d, f in zip(doors, state):
+                    self.scene.set_door(d.name, f)
+                if self.occlusion is not None:
+                    self.occlusion.prepare()
+                self.render_block()
+                n += 1
         for lis, (p, yaw, pitch) in zip(self.listeners, saved):
             lis.position, lis.yaw, lis.pitch = p, yaw, pitch
         for ls in self._state:
