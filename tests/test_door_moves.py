@@ -231,7 +231,7 @@ def test_the_occlusions_kept_boxes_equal_those_made_afresh_as_doors_and_objects_
         klo, khi = occ._object_bounds()
         np.testing.assert_array_equal(klo, lo)
         np.testing.assert_array_equal(khi, hi)
-        np.testing.assert_array_equal(occ._sounding(), sounding_bounds(scene))
+        np.testing.assert_array_equal(sounding_bounds(scene, occ._sb), sounding_bounds(scene))
         if step % 2:
             pose = chair.pose.copy()
             pose[0, 3] += 0.2

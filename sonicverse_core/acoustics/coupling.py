@@ -34,19 +34,11 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from sonicverse_core.acoustics.paths import remember
 from sonicverse_core.scene.materials import BANDS, material_arrays
-from sonicverse_core.acoustics.paths import DOOR_STATES
 
 OPENING_HEIGHT = 2.0
 _SPLITS = [0]  # late splits made in this process: each one's "gen", a key that never repeats
-
-
-def _remember(cache: dict, key, value) -> None:
-    """``cache[key] = value``, the oldest entry dropped beyond ``DOOR_STATES``."""
-    cache.pop(key, None)
-    cache[key] = value
-    while len(cache) > DOOR_STATES:
-        cache.pop(next(iter(cache)))
 
 
 class RoomCoupling:
@@ -167,11 +159,10 @@ class RoomCoupling:
         key = tuple(np.round(self.graph.apertures(), 4))
         T = self._cache.get(key)
         if T is None:
-            R = len(self.rooms)
             E = np.linalg.inv(self._balance(self.coupling()))  # (9, R, R); column s: a unit source in room s
             d = np.diagonal(E, axis1=1, axis2=2)  # (9, R)
             T = np.ascontiguousarray(np.sqrt(np.maximum(E / d[:, None, :], 0.0)).transpose(2, 1, 0))  # [s, l, band]
-            _remember(self._cache, key, T)
+        remember(self._cache, key, T)
         self._T_now = T
         return T
 
@@ -217,6 +208,7 @@ class RoomCoupling:
         key = tuple(np.round(self.graph.apertures(), 4))
         if key in self._split:  # a door state met before (a door shut and opened again)
             self._split_now = self._split[key]
+            remember(self._split, key, self._split_now)
             return self._split_now
         K = self.coupling()
         c = 343.0
@@ -239,7 +231,7 @@ class RoomCoupling:
                "own_rt": own_rt,
                "slow_room": int(np.argmax(U0[:, 0] ** 2)), "modes_rt": modes_rt, "modes_share": modes_share,
                "modes_room": np.argmax(U0 ** 2, axis=0), "open": self.open_share(), "gen": _SPLITS[0]}
-        _remember(self._split, key, out)
+        remember(self._split, key, out)
         self._split_now = out
         return out
 

@@ -148,10 +148,10 @@ class RoomWalls:
         if self.caster.scene.objects:
             dyn = self.caster.dynamic
             o, d = self._o[self.near_door], self._d[self.near_door]
-            if self._near_still[0] != dyn.version("still"):  # the objects that have not moved: cast once per build
+            if self._near_still[0] != dyn.builds["still"]:  # the objects that have not moved: cast once per build
                 g = dyn.first_hit(o, d, 0.6, groups=("still",))
                 closer = g.distance < dist
-                self._near_still = (dyn.version("still"), np.where(closer, g.distance, dist),
+                self._near_still = (dyn.builds["still"], np.where(closer, g.distance, dist),
                                     np.where(closer, g.material, mat))
             _, dist, mat = self._near_still
             f, t = dyn.faces(o, d, self._near_max, groups=("movers",))  # the doors and whatever else has moved

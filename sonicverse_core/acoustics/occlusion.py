@@ -47,14 +47,24 @@ def segment_meets_boxes(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.nda
     return np.any((tmax >= np.maximum(tmin, 0.0)) & (tmin <= 1.0), axis=1)
 
 
-def sounding_bounds(scene) -> np.ndarray:
+def sounding_bounds(scene, kept: dict | None = None) -> np.ndarray:
     """(m, 2, 3): each object's world bounds, 1 cm wider, in the scene's order (its part in the dynamic mesh);
-    a door's is empty (a door is not where a sound comes from)."""
+    a door's is empty (a door is not where a sound comes from). ``kept``: object name -> (its pose's bytes, its
+    bounds), filled and read here, so that only the objects that moved since are made again."""
     from sonicverse_core.scene.model import Door
 
     b = np.empty((len(scene.objects), 2, 3))
     for i, o in enumerate(scene.objects):
-        b[i] = ((np.inf,) * 3, (-np.inf,) * 3) if isinstance(o, Door) else o.world_bounds() + [[-0.01], [0.01]]
+        if isinstance(o, Door):
+            b[i] = ((np.inf,) * 3, (-np.inf,) * 3)
+            continue
+        key = o.pose.tobytes() if kept is not None else None
+        hit = kept.get(o.name) if kept is not None else None
+        if hit is None or hit[0] != key:
+            hit = (key, o.world_bounds() + [[-0.01], [0.01]])
+            if kept is not None:
+                kept[o.name] = hit
+        b[i] = hit[1]
     return b
 
 
@@ -111,7 +121,7 @@ class Occlusion:
         self._log_trans = 0.5 * np.log(np.maximum(material_arrays()[2], 1e-12))
         self._boxes_version = None
         self._bounds = (None, None)  # (scene version, sounding_bounds)
-        self._sb: dict = {}  # object name -> (its pose's bytes, its sounding bounds): _sounding
+        self._sb: dict = {}  # sounding_bounds' kept: object name -> (its pose's bytes, its sounding bounds)
         self._poses = {o.name: o.pose.copy() for o in scene.objects}
         self._dirty_version, self._dirty = scene.dynamic_version, None
         self.stats = {"occlusion_rays": 0, "occlusion_skipped": 0}
@@ -148,24 +158,6 @@ class Occlusion:
             self._hi = np.concatenate([self._static_boxes[1], d[1]]) + 1e-3
             self._boxes_version = self.scene.dynamic_version
         return self._lo, self._hi
-
-    def _sounding(self) -> np.ndarray:
-        """:func:`sounding_bounds`, each object's kept while its pose is (a door has none: its moves change
-        nothing here; a carried object's is made again, the rest kept)."""
-        from sonicverse_core.scene.model import Door
-
-        objs = self.scene.objects
-        b = np.empty((len(objs), 2, 3))
-        for i, o in enumerate(objs):
-            if isinstance(o, Door):
-                b[i] = ((np.inf,) * 3, (-np.inf,) * 3)
-                continue
-            key = o.pose.tobytes()
-            hit = self._sb.get(o.name)
-            if hit is None or hit[0] != key:
-                hit = self._sb[o.name] = (key, o.world_bounds() + [[-0.01], [0.01]])
-            b[i] = hit[1]
-        return b
 
     def _object_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) of every dynamic part (one per object, :func:`_part_bounds` of the dynamic mesh), each object's
@@ -255,7 +247,7 @@ class Occlusion:
             ac = a[cast]
             ray, dist, face, ci, casters = self.caster.walk(ac, np.broadcast_to(lis, (len(cast), 3)))
             if self._bounds[0] != version:
-                self._bounds = (version, self._sounding())
+                self._bounds = (version, sounding_bounds(self.scene, self._sb))
             sm = casters[0][0].mesh
             dm = casters[1][0].mesh if len(casters) > 1 else sm
             logamp = np.empty((len(cast), len(BANDS)))

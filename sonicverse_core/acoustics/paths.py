@@ -49,6 +49,14 @@ _opts = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 
 DIFFRACTION_MODELS = ("fresnel", "none")
 DOOR_STATES = 16  # door states whose graph (and coupled rooms' balance, coupling.py) are kept
+
+
+def remember(kept: dict, key, value) -> None:
+    """``kept[key] = value`` as the newest entry, the oldest dropped beyond ``DOOR_STATES``."""
+    kept.pop(key, None)
+    kept[key] = value
+    while len(kept) > DOOR_STATES:
+        kept.pop(next(iter(kept)))
 MAX_BEND_LOSS_DB = 25.0
 MAX_NODES = 800
 MIN_POCKET = 0.2  # m: free regions whose widest point is narrower than this are inside walls, not rooms
@@ -372,16 +380,14 @@ class PathGraph:
             return False
         self._leaf_key = key
         ns = len(self.static_nodes)
-        seen = self._states.pop(key, None)
+        seen = self._states.get(key)
         if seen is not None:  # a door state met before (a door shut and opened again): its graph, kept
-            self._states[key] = seen
             self.leaves, self.blocking, self.node_ok, tips, self.dist, self.pred = seen
             self.nodes[ns:] = tips
-            return True
-        self._compute(leaves)
-        self._states[key] = (self.leaves, self.blocking, self.node_ok, self.nodes[ns:].copy(), self.dist, self.pred)
-        while len(self._states) > DOOR_STATES:
-            self._states.pop(next(iter(self._states)))
+        else:
+            self._compute(leaves)
+            seen = (self.leaves, self.blocking, self.node_ok, self.nodes[ns:].copy(), self.dist, self.pred)
+        remember(self._states, key, seen)
         return True
 
     def _compute(self, leaves: np.ndarray) -> None:

@@ -32,6 +32,13 @@ class Hits:
     def hit(self) -> np.ndarray:
         return self.face >= 0
 
+    def nearer(self, other: "Hits") -> "Hits":
+        """Per ray, the nearer of these hits and ``other``'s (these where they tie)."""
+        c = other.distance < self.distance
+        return Hits(np.where(c, other.distance, self.distance), np.where(c, other.face, self.face),
+                    np.where(c, other.part, self.part), np.where(c, other.material, self.material),
+                    np.where(c[:, None], other.normal, self.normal))
+
 
 @dataclass(frozen=True)
 class Crossings:
@@ -146,7 +153,8 @@ class DynamicCaster:
         self._poses: list = []  # per object, its pose (bytes) when its group was last built
         self.movers: set[str] = set()
         self._groups: dict[str, tuple] = {}  # "still" | "movers" -> (RayCaster, face map into ``mesh``)
-        self.builds = {"still": 0, "movers": 0}  # how often each group's caster was built
+        # how often each group's caster was built (a caller that keeps one group's hits knows when they went stale)
+        self.builds = {"still": 0, "movers": 0}
         self.mesh = None
         self.sync()
 
@@ -177,11 +185,7 @@ class DynamicCaster:
             self._build("movers")
         elif moved:
             self._build("movers")
-        else:  # touched without a pose change: the faces are the same, the new mesh's arrays are taken
-            for name, (caster, fmap) in self._groups.items():
-                if caster is not None:
-                    caster.mesh = self._sub(fmap)
-        return self
+        return self  # touched without a pose change: the groups' faces are those of the new mesh
 
     def _sub(self, fmap: np.ndarray) -> SceneMesh:
         m = self.mesh
@@ -213,11 +217,6 @@ class DynamicCaster:
             dist[take] = t[take]
         return face, dist
 
-    def version(self, group: str) -> int:
-        """How often ``group`` ("still" or "movers") has been built: a caller that keeps hits of one group knows
-        when they went stale."""
-        return self.builds[group]
-
     def first_hit(self, origins, directions, max_distance=np.inf, groups=("still", "movers")) -> Hits:
         """As :meth:`RayCaster.first_hit`, the faces indexing ``mesh``: the nearest hit of ``groups``."""
         o, d = _as_rays(origins, directions)
@@ -228,13 +227,7 @@ class DynamicCaster:
                 continue
             h = caster.first_hit(o, d, max_distance)
             h = Hits(h.distance, np.where(h.hit, fmap[np.maximum(h.face, 0)], -1), h.part, h.material, h.normal)
-            if best is None:
-                best = h
-                continue
-            c = h.distance < best.distance
-            best = Hits(np.where(c, h.distance, best.distance), np.where(c, h.face, best.face),
-                        np.where(c, h.part, best.part), np.where(c, h.material, best.material),
-                        np.where(c[:, None], h.normal, best.normal))
+            best = h if best is None else best.nearer(h)
         if best is None:
             return Hits(np.full(n, np.inf), np.full(n, -1, np.int64), np.full(n, -1), np.full(n, -1),
                         np.zeros((n, 3)))
@@ -275,13 +268,8 @@ class SceneRayCaster:
         if not include_dynamic or not self.scene.objects:
             return h
         g = self.dynamic.first_hit(origins, directions, max_distance)
-        closer = g.distance < h.distance
-        off = self.part_offset()
-        return Hits(np.where(closer, g.distance, h.distance),
-                    np.where(closer, g.face + len(self.scene.static_mesh()), h.face),
-                    np.where(closer, g.part + off, h.part),
-                    np.where(closer, g.material, h.material),
-                    np.where(closer[:, None], g.normal, h.normal))
+        return h.nearer(Hits(g.distance, g.face + len(self.scene.static_mesh()), g.part + self.part_offset(),
+                             g.material, g.normal))
 
     def crossings(self, a, b, include_dynamic: bool = True, max_hits: int = 64) -> Crossings:
         """Every surface crossed by the segments a[i] -> b[i] ((n, 3) each)."""
