@@ -104,7 +104,10 @@ def test_tasks_under_the_desktop_backend():
         with VRSession(cfg, be, task=task) as s:
             s.run(frames=200)
             summ = s.summary()
-        assert s.frame_index == 200 and summ["backend"] == "desktop" and summ["task"]["name"] == name
+        assert summ["backend"] == "desktop" and summ["task"]["name"] == name
+        # 200 frames, or fewer when the task is over first: the desktop clock follows the wall clock (it skips the
+        # refreshes a slow frame missed), so on a slow machine the robot can place the object within 200 frames
+        assert s.frame_index == 200 or (getattr(task, "done", False) and 0 < s.frame_index < 200)
         if robots:
             assert task.steps >= 5  # the agent acted on the desktop clock
         assert not summ["events"]
