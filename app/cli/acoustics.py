@@ -185,7 +185,7 @@ def add_audio_commands(sub, bench_sub) -> None:
                     help="also report each subsystem's mean share of the block (per_subsystem)")
     ba.add_argument("--door-every", type=A.number(0.01, 3600, unit="s"), default=None, metavar="S",
                     help="every S seconds of audio a door (each in turn) opens or shuts; report the cost of applying "
-                    "it and of the block that renders it (doors)")
+                    "it and of the three blocks that render it (doors)")
     ba.add_argument("--json", action="store_true", help="(always JSON)")
     ba.set_defaults(func=cmd_bench_audio)
     bc = bench_sub.add_parser("accuracy", help="error vs run time of every accuracy/speed knob",

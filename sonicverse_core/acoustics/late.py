@@ -25,6 +25,10 @@ SLOW_SEED = 1000  # the slowest coupled mode's tails: noise independent of the r
 SEED_STRIDE = 10_007  # RenderConfig.tail_seed's step between realisations (a tail per probe within a stride)
 PORTAL_STEP = 5.0  # degrees: the azimuth table of the neighbouring room's direction
 APART = 1.25  # a coupled mode is heard apart only if it decays this much slower than the listener's room alone
+# blocks after a door's move before the late reverb takes the rooms' new balance: the move's occlusion and paths
+# are cast in the block after it and the early reflections' walls in the next, so the late re-mix comes third
+# (about 10 ms at 256 frames, inside the tail's own build-up) and no block carries two of them
+DOOR_MIX_DELAY = 2
 
 
 class NeighbourTail:
@@ -68,6 +72,7 @@ class LateState(PerSource):
     __slots__ = ("send", "send_delay", "send_slow", "group", "use_occ", "group_moved", "fdn", "conv", "conv_slow",
                  "ears", "portal", "portal_idx", "level", "sends", "seen", "shapes", "shapes_key", "mid", "mono",
                  "fdn_out", "key", "params", "lis_room", "room_reverbs", "gen", "modal_key", "modal_w", "modal_shapes",
+                 "modal_wait",
                  "fdn_rt", "fdn_slow", "mid_own", "mid_slow", "fdn_key", "rt_send", "rt_slow", "sends_slow",
                  "buildup", "buildup_slow", "more", "qs", "vbuf")
     ROWS = (("send", (), np.float64, 0), ("send_delay", (), np.int64, 0), ("send_slow", (), np.float64, 0),
@@ -92,6 +97,7 @@ class LateState(PerSource):
         self.shapes = np.ones((groups, len(BANDS)))
         self.shapes_key = self.key = self.params = self.modal_key = self.modal_w = self.modal_shapes = None
         self.lis_room, self.room_reverbs, self.gen = -1, 0, 0
+        self.modal_wait = -1  # blocks left before a door's new balance is mixed in (-1: none pending)
 
 
 class TailBuildUp:
@@ -180,6 +186,7 @@ class LateReverb:
     def __init__(self, renderer, graph=None):
         self.r = r = renderer
         cfg, scene = r.cfg, r.scene
+        self.door_delay = DOOR_MIX_DELAY  # blocks (0: the re-mix in the block that renders the move)
         self.rt = np.array([p.rt60 for p in r.probes])
         self.vol = np.array([p.volume for p in r.probes])
         r.coupling, self.groups, self.modal = None, 1, False
@@ -381,7 +388,18 @@ class LateReverb:
         group, use_occ, _ = self._late_groups(st, n)
         split = c.late_split()
         key = (split["gen"], st.gen)
+        if st.modal_key == key:  # (the doors back as they were before a pending re-mix: none pending)
+            st.modal_wait = -1
+        elif st.modal_key is not None and st.modal_key[0] != key[0] and self.door_delay > 0:
+            # a door moved: its occlusion, paths and early reflections go first (DOOR_MIX_DELAY); the tails play
+            # on with the balance before it meanwhile (a listener who changes rooms meanwhile waits as well)
+            if st.modal_wait < 0:
+                st.modal_wait = self.door_delay
+            if st.modal_wait > 0:
+                st.modal_wait -= 1
+                key = st.modal_key
         if st.modal_key != key:
+            st.modal_wait = -1
             st.modal_w, st.modal_shapes = self._modal_mix(st, lis, w, split, lr)
             st.modal_key = key
             # a source in another room: Barron's distance law with the slower of its room's and the listener's

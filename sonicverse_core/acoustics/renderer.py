@@ -388,7 +388,9 @@ class AcousticRenderer:
                 self.scene.set_door(d.name, 0.0 if f > 0.5 else 1.0)
             if self.occlusion is not None:
                 self.occlusion.prepare()
-            for _ in range(2):  # the move is cast in the block after it
+            from sonicverse_core.acoustics.late import DOOR_MIX_DELAY
+
+            for _ in range(2 + DOOR_MIX_DELAY):  # the move is cast in the block after it, the late re-mix later
                 self.render_block()
                 n += 1
             for d, f in zip(doors, was):
