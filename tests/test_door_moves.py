@@ -288,7 +288,8 @@ def test_a_doors_late_re_mix_comes_two_blocks_after_it_and_is_the_one_an_immedia
     # another room, the doors as they are: re-mixed in the next block
     lis = rs[1].listeners[0]
     room = st[1].lis_room
-    other = next(k for k, p in enumerate(rs[1]._probe_pos) if rs[1].coupling.room_of(p[None, :2])[0] not in (room, -1))
+    rooms = rs[1].coupling.room_of(rs[1]._probe_pos[:, :2])
+    other = next(k for k, q in enumerate(rooms) if q not in (room, -1))
     was = st[1].modal_key
     rs[1].set_listener(lis, np.r_[rs[1]._probe_pos[other][:2], 1.5], 0.0)
     rs[1].render_block()

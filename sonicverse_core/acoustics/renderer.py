@@ -49,7 +49,9 @@ listeners are added):
   that room), from that room's doorway, chosen by the energy they bring into the listener's room
   (``late.LateReverb._apart``); a hall between two live rooms hears each of them decay as itself. Each mode heard
   apart has sends of its own, whose distance law takes that mode's decay. The FDN option (``reverb="fdn"``) gives
-  each mode heard apart a network of its own, without a direction.
+  each mode heard apart a network of its own, without a direction. A door's move reaches the late reverb's mix
+  ``late.DOOR_MIX_DELAY`` blocks after the block that casts its occlusion and paths (the early reflections' walls
+  are cast in the one between), so that a real-time stream meets the door's work one part a block.
 * A transparent limiter acts only when a block would exceed 0.99; the output is finite and within [-1, 1].
 
 Nothing a caller feeds in can silence the renderer for good: signals are checked where they enter (a file or bank
@@ -356,13 +358,13 @@ class AcousticRenderer:
         """Compile (or load from numba's cache) every kernel a block can reach, now rather than in a real-time
         callback, where one costs 0.1-3 s and the audio server drops the client. Renders a block with every listener
         at each probe (each room's own early reflections; the other rooms' sources along their paths and through the
-        coupled reverb) and at a spot in no room (where a probe box's images apply), two with every door moved
-        (walls and room images cast again) and one with the doors back, then one per door state a user's moves reach
-        (every open/shut combination where the kept ``DOOR_STATES`` hold them all, else each door moved alone) and
-        one with the doors back, so that their path graphs and coupled rooms' balances are made here, not in the
-        block after a user opens a door; then puts the listeners back and clears
-        every listener's state as on a fresh start. Returns the blocks rendered. The live audio workers call it
-        before their stream opens (``app.audio_rt``)."""
+        coupled reverb) and at a spot in no room (where a probe box's images apply), 2 + ``late.DOOR_MIX_DELAY``
+        with every door moved (walls and room images cast again, the late reverb re-mixed) and one with the doors
+        back, then one per door state a user's moves reach (every open/shut combination where the kept
+        ``DOOR_STATES`` hold them all, else each door moved alone) and one with the doors back, so that their path
+        graphs and coupled rooms' balances are made here, not in the block after a user opens a door; then puts the
+        listeners back and clears every listener's state as on a fresh start. Returns the blocks rendered. The live
+        audio workers call it before their stream opens (``app.audio_rt``)."""
         if not self.listeners:
             return 0
         saved = [(lis.position.copy(), lis.yaw, lis.pitch) for lis in self.listeners]
