@@ -19,6 +19,8 @@ Knobs and references:
   per second of audio.
 * propagation paths' grid cell: path length and last-bend direction round the L-room's corner vs the exact
   geometry; time to bake the scene's path graph.
+* the late re-mix's delay after a door's move (blocks): each block's binaural energy after the move vs the re-mix
+  made at once; the costliest of the three blocks after a move.
 """
 from __future__ import annotations
 
@@ -526,6 +528,48 @@ def _diffraction(quick: bool):
             "path query", "rows": rows}
 
 
+def _door_mix(quick: bool):
+    """When a door's move reaches the late reverb's mix (``LateReverb.door_delay``, default ``late.DOOR_MIX_DELAY``
+    blocks after the block that casts its occlusion and paths): the binaural output after each move against the
+    re-mix made at once (0), and what the costliest of the three blocks after a move takes."""
+    from app.bench.engine import _audio_scene
+    from sonicverse_core.acoustics.late import DOOR_MIX_DELAY
+    from sonicverse_core.acoustics.renderer import RenderConfig
+
+    moves, gap = (6, 40) if quick else (18, 40)  # 40 blocks of 256 frames between moves: 0.21 s
+    rows, ref = [], None
+    for delay in sorted({0, 1, DOOR_MIX_DELAY}):
+        r = _audio_scene("builtin:apartment", 16, 0, RenderConfig(sample_rate=48000, block=256))
+        r.late.door_delay = delay
+        r.warm_kernels()
+        doors = r.scene.doors
+        for _ in range(20):
+            r.render_block()
+        energy, cost = np.zeros((moves, gap)), np.zeros((moves, 3))
+        for m in range(moves):
+            d = doors[m % len(doors)]
+            r.scene.set_door(d.name, 0.0 if d.open_fraction > 0.5 else 1.0)
+            if r.occlusion is not None:
+                r.occlusion.prepare()
+            for b in range(gap):
+                t0 = time.perf_counter()
+                out = r.render_block()[0]
+                if b < 3:
+                    cost[m, b] = time.perf_counter() - t0
+                energy[m, b] = float(np.mean(np.square(out, dtype=np.float64)))
+        db = 10 * np.log10(energy + 1e-30)
+        if ref is None:
+            ref = db
+        err = np.abs(db - ref).max(axis=1)  # per move, the block furthest from the re-mix made at once
+        rows.append({"setting": delay, "error": float(np.mean(err)), "time_s": float(np.median(cost.max(axis=1))),
+                     "max_error_db": round(float(err.max()), 3),
+                     "median_block_s_after_a_move": np.round(np.median(cost, axis=0), 6).tolist()})
+    return {"knob": "door_mix_delay", "error_metric": "mean over door moves of the largest |dB| difference of a "
+            "256-frame block's binaural energy in the 0.21 s after the move from the late re-mix made at once (16 "
+            "sources in the apartment, the listener still); time: the costliest of the three blocks after a move "
+            "(median over the moves)", "rows": rows}
+
+
 def bench_accuracy(reference_rays: int = 1_000_000, quick: bool = False, plot: str | None = None) -> dict:
     from sonicverse_core.progress import progress
 
@@ -533,7 +577,7 @@ def bench_accuracy(reference_rays: int = 1_000_000, quick: bool = False, plot: s
              lambda: [_late_model(quick)], lambda: [_neighbour_tails(quick)],
              lambda: [_probes(quick)], lambda: [_hrtf(quick)],
              lambda: [_early(quick)], lambda: [_early_geometry(quick)], lambda: [_reverb(quick)], lambda: [_blocks(quick)], lambda: [_path_cell(quick)],
-             lambda: [_diffraction(quick)]]
+             lambda: [_diffraction(quick)], lambda: [_door_mix(quick)]]
     knobs = [k for step in progress(steps, desc="accuracy knobs") for k in step()]
     for k in knobs:
         front = _pareto([(r["error"], r["time_s"]) for r in k["rows"]])
