@@ -93,3 +93,34 @@ def test_save_replaces_a_recording_atomically(tmp_path, monkeypatch):
     with pytest.raises(OSError):
         rec.save(path)
     assert path.read_bytes() == before and not list(tmp_path.glob(".in.npz.*"))
+
+
+def test_a_stop_that_lands_inside_a_frames_recording_leaves_the_list_and_the_log_alike(tmp_path):
+    """A SIGTERM runs its handler wherever the main thread is: one that landed between a frame going into the
+    recording's list and into its ``.svrec`` left the final ``.npz`` a frame longer than the ``.svrec`` (a CI run:
+    183 against 182). Here the stop lands inside the log's append: the frame is in both or in neither, and the stop
+    still ends the command once the frame is in."""
+    from sonicverse_core import errors
+
+    from app.vr.frame import FrameInput
+
+    rec = Recording({"scene": SCENE})
+    rec.stream_to(tmp_path / "input.svrec", sync_every=1)
+    log = rec._logs[0]
+    append = log.append
+    f = FrameInput(0, 0.0, 1 / 90, np.eye(4), np.stack([np.eye(4)] * 2), np.ones(2, bool), np.zeros(2, np.uint64))
+    rec.add(f)
+
+    def stopped_inside(row):
+        errors.stop("terminated (SIGTERM)")  # the handler's raise, where the signal landed: before the write
+        append(row)
+
+    log.append = stopped_inside
+    try:
+        with pytest.raises(errors.Interrupted):
+            rec.add(f)
+    finally:
+        errors._STOPPED.clear()
+        log.append = append
+    rec.sync()
+    assert len(rec.frames) == len(read_records(tmp_path / "input.svrec")[1]) == 2

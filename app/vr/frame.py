@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sonicverse_core.errors import ConfigError, DataError
+from sonicverse_core.errors import ConfigError, DataError, stop_held
 
 # button bits, as in OpenVR's ulButtonPressed (k_EButton_*): desktop keys and scripts use the same masks
 BUTTON_MENU = 1 << 1
@@ -95,10 +95,14 @@ class Recording:
         self._logs: list = []  # RecordLogs that get every frame as it is added
 
     def add(self, f: FrameInput) -> None:
-        self.frames.append(FrameInput(f.index, f.t, f.dt, f.head.copy(), f.hands.copy(), f.hands_valid.copy(),
-                                      f.buttons.copy(), f.quit))
-        for log in self._logs:
-            log.append((f.t, f.dt, f.head, f.hands, f.hands_valid, f.buttons))
+        """The frame into the list and every log it streams to, or into none: a stop (SIGTERM) raised between the
+        two would leave the ``.npz`` saved at the end a frame longer than the ``.svrec``."""
+        frame = FrameInput(f.index, f.t, f.dt, f.head.copy(), f.hands.copy(), f.hands_valid.copy(), f.buttons.copy(),
+                           f.quit)
+        with stop_held():
+            self.frames.append(frame)
+            for log in self._logs:
+                log.append((f.t, f.dt, f.head, f.hands, f.hands_valid, f.buttons))
 
     def stream_to(self, path, sync_every: int = 90) -> Path:
         """From now on, append every added frame to the ``.svrec`` file ``path`` (frames already added first),

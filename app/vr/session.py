@@ -22,7 +22,7 @@ import numpy as np
 from app.tasks.roam import FrameTask, FreeRoam
 from app.vr.frame import FrameInput, FrameStats, Recording
 from app.vr.transforms import head_pose, look_matrix
-from sonicverse_core.errors import ConfigError, Interrupted, SonicverseError, check_stopped
+from sonicverse_core.errors import ConfigError, Interrupted, SonicverseError, check_stopped, stop_held
 
 WARMUP_FRAMES = 2  # not counted in the frame statistics (their intervals include the first render and audio block)
 SYNC_FRAMES = 90  # frames between syncs of the files a session writes as it runs (a second at 90 Hz)
@@ -168,9 +168,10 @@ class VRSession:
         doors = [d.open_fraction for d in self.scene.doors]
         rb = list(self.world.pose) if self.world is not None else []
         row = np.array([f.t, *f.head[:3, 3], *rb, *doors], np.float64)
-        self.trajectory.append(row)
-        if self._traj_log is not None:
-            self._traj_log.append((row,))
+        with stop_held():  # the row into the trajectory and its log, or into neither (a SIGTERM between them)
+            self.trajectory.append(row)
+            if self._traj_log is not None:
+                self._traj_log.append((row,))
 
     def frame(self) -> bool:
         """One frame; False when the backend asks to stop. Raises :class:`Interrupted` once the process was told to
