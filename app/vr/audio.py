@@ -17,7 +17,7 @@ from app.audio_rt.config import AudioConfig, AudioScene, SourceSpec
 from assets_manifest import soundbank
 from app.audio_rt.poses import PoseInterpolator, PoseLayout, mouth
 from app.vr.transforms import head_pose
-from sonicverse_core.errors import ConfigError
+from sonicverse_core.errors import ConfigError, stop_held
 
 # which objects sound in the VR app, first choice first: the sound bank's categories, those that sound on their own
 # (a TV, running water) before the rest
@@ -68,10 +68,11 @@ class EarLog:
         if block.shape[-1] == 0:
             return
         block = np.asarray(block, np.float32)
-        if self.sink is not None:
-            self.sink.write(block.T)
-        self.blocks.append(block)
-        self.n += block.shape[-1]
+        with stop_held():  # on disk and in memory, or neither (a SIGTERM between them)
+            if self.sink is not None:
+                self.sink.write(block.T)
+            self.blocks.append(block)
+            self.n += block.shape[-1]
         while self.n - self.blocks[0].shape[-1] >= self.cap:
             self.n -= self.blocks.popleft().shape[-1]
 
