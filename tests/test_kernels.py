@@ -409,11 +409,11 @@ def test_no_kernel_makes_an_array():
     allocations are counted in tests/test_poison.py). A source scan of every compiled function's body."""
     import inspect
 
-    from sonicverse_core.acoustics import paths
+    from sonicverse_core.acoustics import path_kernels
 
     made = ("np.empty(", "np.zeros(", "np.ones(", "np.full(", "np.array(", ".copy()", "np.concatenate(", "np.stack(")
     per_block = [f for mod in (K, LK, EK) for f in vars(mod).values() if hasattr(f, "py_func")] + \
-        [paths.combine_paths, paths._unit]
+        [path_kernels.combine_paths, path_kernels._unit]
     bad = [(f.__name__, m) for f in per_block for m in made if m in inspect.getsource(f.py_func).split('"""')[-1]]
     assert not bad, bad
 

@@ -1,12 +1,13 @@
-"""Every compiled kernel of the propagation paths (sonicverse_core/acoustics/paths.py) against a NumPy twin written from
-its docstring (the renderer's kernels are in test_kernels.py; a kernel without a twin fails
+"""Every compiled kernel of the propagation paths (sonicverse_core/acoustics/path_kernels.py) against a NumPy twin
+written from its docstring (the renderer's kernels are in test_kernels.py; a kernel without a twin fails
 ``test_every_path_kernel_has_a_twin``)."""
 import numpy as np
 import pytest
 from scipy.sparse.csgraph import shortest_path as sp_shortest
 from scipy.spatial.transform import Rotation
 
-from sonicverse_core.acoustics import paths as P
+from sonicverse_core.acoustics import path_kernels as P
+from sonicverse_core.acoustics.paths import path_graph
 from sonicverse_core.acoustics.kernels import distance_gain_1
 from sonicverse_core.scene.materials import BANDS
 
@@ -109,7 +110,7 @@ def test_trace_paths_matches_its_formula_in_two_rooms():
 
     scene = load_scene("builtin:two-rooms?door=open")
     scene.set_door(scene.doors[0].name, 0.4)  # a part-open leaf: an obstacle and an aperture below 1
-    g = P.path_graph(scene)
+    g = path_graph(scene)
     g.refresh()
     lo, hi = scene.bounds[0, :2] + 0.3, scene.bounds[1, :2] - 0.3
     pts = RNG.uniform(lo, hi, (60, 2))
