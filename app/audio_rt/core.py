@@ -222,14 +222,12 @@ class AudioCore:
                 self.door_change = True
 
     def _apply_doors(self) -> None:
-        """After a block's output is written: move the doors and build their geometry; the occlusion rays they
-        affect are cast in the next block (a door's cost is spread over two blocks)."""
+        """After a block's output is written: move the doors and build their geometry (``set_doors``); the blocks
+        after it render the move, a part each (a door's cost is spread over the callbacks)."""
         d = self.interp.target[self.L.DOORS]
-        for k in np.flatnonzero(d != self.door_state):
-            self.scene.set_door(self.doors[k], float(d[k]))
-            self.door_state[k] = d[k]
-        if self.r.occlusion is not None:
-            self.r.occlusion.prepare()
+        moved = np.flatnonzero(d != self.door_state)
+        self.r.set_doors({self.doors[k]: d[k] for k in moved})
+        self.door_state[moved] = d[moved]
         self.door_change = False
 
     def render_robots(self, mic_block: np.ndarray | None) -> None:

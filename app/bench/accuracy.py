@@ -548,9 +548,7 @@ def _door_mix(quick: bool):
         energy, cost = np.zeros((moves, gap)), np.zeros((moves, 3))
         for m in range(moves):
             d = doors[m % len(doors)]
-            r.scene.set_door(d.name, 0.0 if d.open_fraction > 0.5 else 1.0)
-            if r.occlusion is not None:
-                r.occlusion.prepare()
+            r.set_doors({d.name: 0.0 if d.open_fraction > 0.5 else 1.0})
             for b in range(gap):
                 t0 = time.perf_counter()
                 out = r.render_block()[0]

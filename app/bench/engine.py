@@ -181,9 +181,7 @@ def bench_audio(n_sources: int = 64, seconds: float = 8.0, spec: str = "builtin:
             if every and i >= 0 and (i + 1) % every == 0 and i + 1 < n_blocks:  # after this block: a door moves
                 d = doors[len(applied) % len(doors)]
                 a0 = time.perf_counter()
-                r.scene.set_door(d.name, 0.0 if d.open_fraction > 0.5 else 1.0)
-                if r.occlusion is not None:
-                    r.occlusion.prepare()
+                r.set_doors({d.name: 0.0 if d.open_fraction > 0.5 else 1.0})
                 applied.append((time.perf_counter() - a0) / block_s)
                 door_at.add(i + 1)
             if i >= 0:

@@ -116,9 +116,8 @@ class RoomWalls:
         self.table = self._cast(np.arange(len(self._o)), dynamic=False).reshape(E, T, Z)
         # the static structure's first hit of the samples near doors, kept: a door's move casts them through the
         # dynamic geometry alone and takes the nearer hit (the same answer as casting both again)
-        h = caster.static.first_hit(self._o[self.near_door], self._d[self.near_door], 0.6)
-        self._near_static = (h.distance, h.material)
-        self._near_still = (None, None, None)  # (the still objects' build, distance, material): with them too
+        self._near_static = caster.static.first_hit(self._o[self.near_door], self._d[self.near_door], 0.6)
+        self._near_still = (None, None)  # (the still objects' build, the nearer of their hits and the static's)
         self._near_max = np.full(len(self.near_door), 0.6)
         self._open = self.table.reshape(-1) == 0  # openings of the structure, whatever state the doors are in
         self.refresh()
@@ -144,19 +143,19 @@ class RoomWalls:
         static structure's hits of them were kept)."""
         if not len(self.near_door):
             return
-        dist, mat = self._near_static
+        hits = self._near_static
         if self.caster.scene.objects:
             dyn = self.caster.dynamic
             o, d = self._o[self.near_door], self._d[self.near_door]
             if self._near_still[0] != dyn.builds["still"]:  # the objects that have not moved: cast once per build
-                g = dyn.first_hit(o, d, 0.6, groups=("still",))
-                closer = g.distance < dist
-                self._near_still = (dyn.builds["still"], np.where(closer, g.distance, dist),
-                                    np.where(closer, g.material, mat))
-            _, dist, mat = self._near_still
+                self._near_still = (dyn.builds["still"], hits.nearer(dyn.first_hit(o, d, 0.6, groups=("still",))))
+            hits = self._near_still[1]
             f, t = dyn.faces(o, d, self._near_max, groups=("movers",))  # the doors and whatever else has moved
-            closer = (f >= 0) & (t < dist)
-            dist, mat = np.where(closer, t, dist), np.where(closer, dyn.mesh.face_material[np.maximum(f, 0)], mat)
+            closer = (f >= 0) & (t < hits.distance)
+            dist = np.where(closer, t, hits.distance)
+            mat = np.where(closer, dyn.mesh.face_material[np.maximum(f, 0)], hits.material)
+        else:
+            dist, mat = hits.distance, hits.material
         self.table.reshape(-1)[self.near_door] = self._refl[np.where(dist <= 0.35, mat, -1)]
 
     def opens_into(self, rooms) -> dict:

@@ -185,7 +185,8 @@ class Occlusion:
 
     def prepare(self) -> None:
         """Build what the next update needs after a scene change (dynamic mesh, its ray caster, part boxes, the
-        moved objects' boxes), so that a real-time caller can spread a door's cost over two blocks."""
+        moved objects' boxes), so that a real-time caller can spread a door's cost over the blocks
+        (``AcousticRenderer.set_doors``)."""
         self.caster.dynamic
         self._boxes()
         self._changed_boxes()

@@ -284,6 +284,15 @@ class AcousticRenderer:
         k = next(i for i, li in enumerate(self.listeners) if li is lis)
         self._state[k].mute[source.index] = not heard
 
+    def set_doors(self, fractions: dict) -> None:
+        """Move the scene's doors (name -> open fraction) and build what the next block needs for them (the
+        occlusion's geometry), as a real-time caller does between blocks; the next blocks render the move (its
+        occlusion and paths, then the early reflections' walls, then the late mix: ``late.DOOR_MIX_DELAY``)."""
+        for name, f in fractions.items():
+            self.scene.set_door(name, float(f))
+        if self.occlusion is not None:
+            self.occlusion.prepare()
+
     @staticmethod
     def set_listener(lis: Listener, position, yaw, pitch=None) -> None:
         p = np.asarray(position, float)
@@ -385,37 +394,28 @@ class AcousticRenderer:
         if doors:
             for lis in self.listeners:  # in a room (its probe's): every part a door's move reaches runs
                 lis.position = np.array(spots[0], float)
-            was = [d.open_fraction for d in doors]
-            for d, f in zip(doors, was):
-                self.scene.set_door(d.name, 0.0 if f > 0.5 else 1.0)
-            if self.occlusion is not None:
-                self.occlusion.prepare()
+            names, was = [d.name for d in doors], [d.open_fraction for d in doors]
+            flip = [0.0 if f > 0.5 else 1.0 for f in was]
+            self.set_doors(dict(zip(names, flip)))
             from sonicverse_core.acoustics.late import DOOR_MIX_DELAY
 
             for _ in range(2 + DOOR_MIX_DELAY):  # the move is cast in the block after it, the late re-mix later
                 self.render_block()
                 n += 1
-            for d, f in zip(doors, was):
-                self.scene.set_door(d.name, f)
-            if self.occlusion is not None:
-                self.occlusion.prepare()
+            self.set_doors(dict(zip(names, was)))
             self.render_block()  # the doors' return is cast and the path graph refreshed here, not in the next block
             n += 1
             from sonicverse_core.acoustics.paths import DOOR_STATES
 
             # the door states a user's moves reach, met here (the path graph and the coupled rooms keep DOOR_STATES):
             # every open/shut combination where they all fit, else each door moved alone
-            flip = [0.0 if f > 0.5 else 1.0 for f in was]
             if 2 ** len(doors) <= DOOR_STATES:
                 states = [[flip[k] if (m >> k) & 1 else was[k] for k in range(len(doors))]
                           for m in range(1, 2 ** len(doors))]
             else:
                 states = [[flip[k] if k == j else was[k] for k in range(len(doors))] for j in range(len(doors))]
             for state in states + [was]:
-                for d, f in zip(doors, state):
-                    self.scene.set_door(d.name, f)
-                if self.occlusion is not None:
-                    self.occlusion.prepare()
+                self.set_doors(dict(zip(names, state)))
                 self.render_block()
                 n += 1
         for lis, (p, yaw, pitch) in zip(self.listeners, saved):
